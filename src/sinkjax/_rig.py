@@ -1,0 +1,176 @@
+"""The rig file (conventions §2): wheel radius, confidence rectangle, travel, segmentation."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+# The hue band is circular: H_d = H_w + (P_d - 1) * HUE_SCALE_DEG, H_a = H_w + (P_a - 1) * HUE_SCALE_DEG.
+# The paper writes H_a = P_a * H_w, which depends on where hue's zero happens to be (a red wheel at
+# H_w ~ 0 would get an empty band, at H_w ~ 359 a huge one). Using a fixed half-turn as the scale
+# keeps the paper's P_a/P_d meaning ("percent around the wheel's mean") for every wheel colour.
+HUE_SCALE_DEG = 180.0
+
+
+class RigError(ValueError):
+    """A rig file or rig argument is unusable; the message says what to fix."""
+
+
+class SegmentationParams(eqx.Module):
+    """The paper's P_d/P_a for H and S, plus the soft method's temperatures.
+
+    Every field is a scalar array leaf so that ``jax.grad`` reaches it (calibration tunes them).
+    H band: H_w + (P - 1) * 180 deg (circular); S band: [P_d * S_w, P_a * S_w] (the paper's).
+    Temperatures set the width of the soft masks' sigmoids: degrees of hue, units of saturation.
+    """
+
+    p_d_hue: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.9)
+    p_a_hue: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.1)
+    p_d_sat: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.5)
+    p_a_sat: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.8)
+    temperature_hue_deg: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=2.0)
+    temperature_sat: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.02)
+
+    def as_dict(self) -> dict[str, float]:
+        return {name: float(getattr(self, name)) for name in _SEG_FIELDS}
+
+
+_SEG_FIELDS = (
+    "p_d_hue",
+    "p_a_hue",
+    "p_d_sat",
+    "p_a_sat",
+    "temperature_hue_deg",
+    "temperature_sat",
+)
+
+
+class Rig(eqx.Module):
+    """One camera set-up. ``confidence_rect`` is (x, y, w, h) in pixels on the wheel face."""
+
+    wheel_radius_mm: float = eqx.field(static=True)
+    confidence_rect: tuple[int, int, int, int] = eqx.field(static=True)
+    travel: str = eqx.field(static=True, default="right")
+    segmentation: SegmentationParams = SegmentationParams()
+
+    def __check_init__(self) -> None:
+        validate_rig_fields(self.wheel_radius_mm, self.confidence_rect, self.travel)
+
+
+def validate_rig_fields(
+    wheel_radius_mm: Any, confidence_rect: Any, travel: Any, source: str = "rig"
+) -> None:
+    """Raise RigError with a fix-it message if any field is unusable."""
+    if (
+        not isinstance(wheel_radius_mm, int | float)
+        or isinstance(wheel_radius_mm, bool)
+        or not math.isfinite(wheel_radius_mm)
+        or wheel_radius_mm <= 0
+    ):
+        raise RigError(
+            f"{source}: wheel_radius_mm must be a positive number (the rim radius R in mm), "
+            f"got {wheel_radius_mm!r}; e.g. wheel_radius_mm = 140.0"
+        )
+    if (
+        not isinstance(confidence_rect, tuple | list)
+        or len(confidence_rect) != 4
+        or not all(isinstance(v, int) and not isinstance(v, bool) for v in confidence_rect)
+    ):
+        raise RigError(
+            f"{source}: confidence_rect must be four integers [x, y, w, h] in pixels, "
+            f"got {confidence_rect!r}; e.g. confidence_rect = [300, 120, 40, 30]"
+        )
+    x, y, w, h = confidence_rect
+    if x < 0 or y < 0 or w < 1 or h < 1:
+        raise RigError(
+            f"{source}: confidence_rect [x, y, w, h] needs x, y >= 0 and w, h >= 1, "
+            f"got {list(confidence_rect)!r}"
+        )
+    if travel not in ("right", "left"):
+        raise RigError(f"{source}: travel must be \"right\" or \"left\", got {travel!r}")
+
+
+def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
+    """Build a Rig from parsed TOML; raises RigError naming the field and the fix."""
+    if "wheel_radius_mm" not in data:
+        raise RigError(
+            f"{source}: missing wheel_radius_mm (the physical rim radius R in mm); "
+            "add e.g. wheel_radius_mm = 140.0 or pass --wheel-radius-mm"
+        )
+    if "confidence_rect" not in data:
+        raise RigError(
+            f"{source}: missing confidence_rect = [x, y, w, h] (pixels of a rectangle that always "
+            "shows the wheel face); add it or pass --confidence-rect X,Y,W,H"
+        )
+    radius = data["wheel_radius_mm"]
+    if isinstance(radius, int) and not isinstance(radius, bool):
+        radius = float(radius)
+    rect = data["confidence_rect"]
+    rect = tuple(rect) if isinstance(rect, list) else rect
+    travel = data.get("travel", "right")
+    validate_rig_fields(radius, rect, travel, source)
+    seg_data = data.get("segmentation", {})
+    if not isinstance(seg_data, dict):
+        raise RigError(f"{source}: [segmentation] must be a table")
+    unknown = set(seg_data) - set(_SEG_FIELDS)
+    if unknown:
+        raise RigError(
+            f"{source}: unknown [segmentation] keys {sorted(unknown)}; known: {list(_SEG_FIELDS)}"
+        )
+    seg_kwargs: dict[str, Any] = {}
+    for name, value in seg_data.items():
+        if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+            raise RigError(f"{source}: [segmentation] {name} must be a number, got {value!r}")
+        seg_kwargs[name] = float(value)
+    seg = SegmentationParams(**seg_kwargs)
+    _check_segmentation(seg, source)
+    return Rig(wheel_radius_mm=radius, confidence_rect=rect, travel=travel, segmentation=seg)
+
+
+def _check_segmentation(seg: SegmentationParams, source: str) -> None:
+    d = seg.as_dict()
+    for kind in ("hue", "sat"):
+        lo, hi = d[f"p_d_{kind}"], d[f"p_a_{kind}"]
+        if not 0 <= lo < 1 < hi:
+            raise RigError(f"{source}: [segmentation] needs 0 <= p_d_{kind} < 1 < p_a_{kind}")
+    if d["temperature_hue_deg"] <= 0 or d["temperature_sat"] <= 0:
+        raise RigError(f"{source}: [segmentation] temperatures must be > 0")
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read a ``rig.toml``. Raises RigError (missing file, bad TOML, bad field) with the fix."""
+    p = Path(path)
+    if not p.is_file():
+        raise RigError(f"rig file {str(p)!r} does not exist; write one (see README) or pass flags")
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise RigError(f"{p}: not valid TOML ({e})") from e
+    return rig_from_dict(data, source=str(p))
+
+
+def rig_to_toml(rig: Rig, comment: str | None = None) -> str:
+    """The TOML text of a complete rig file (round-trips through :func:`load_rig`)."""
+    x, y, w, h = rig.confidence_rect
+    lines = []
+    if comment:
+        lines += [f"# {line}" for line in comment.splitlines()]
+    lines += [
+        f"wheel_radius_mm = {float(rig.wheel_radius_mm)!r}",
+        f"confidence_rect = [{x}, {y}, {w}, {h}]",
+        f'travel = "{rig.travel}"',
+        "",
+        "[segmentation]",
+    ]
+    lines += [f"{k} = {v!r}" for k, v in rig.segmentation.as_dict().items()]
+    return "\n".join(lines) + "\n"
+
+
+def save_rig(rig: Rig, path: str | Path, comment: str | None = None) -> None:
+    Path(path).write_text(rig_to_toml(rig, comment), encoding="utf-8")
