@@ -1,0 +1,45 @@
+"""Colour stage: RGB -> the paper's HSI, in JAX, with finite gradients everywhere."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+_EPS = 1e-12
+
+
+def rgb_to_hsi(
+    rgb: Float[Array, "*hw 3"],
+) -> tuple[Float[Array, "*hw"], Float[Array, "*hw"], Float[Array, "*hw"]]:
+    """The paper's HSI: hue in degrees [0, 360), saturation and intensity in [0, 1].
+
+    ``rgb`` is channel-last in [0, 1]. Hue is the textbook arccos formula written as
+    ``atan2(sqrt(3) (G - B), 2R - G - B)``, which is the same angle (both are the polar angle of
+    the chromaticity vector) but has bounded derivatives where arccos has infinite ones.
+    Grey pixels get H = 0 and black pixels S = 0, with zero (not NaN) gradients there.
+    """
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    cx = 2.0 * r - g - b
+    cy = jnp.sqrt(3.0) * (g - b)
+    grey = cx * cx + cy * cy <= _EPS
+    # Double where: atan2(0, 0) has a NaN gradient even in the untaken branch.
+    h = jnp.degrees(jnp.arctan2(jnp.where(grey, 0.0, cy), jnp.where(grey, 1.0, cx)))
+    h = jnp.where(grey, 0.0, jnp.mod(h, 360.0))
+    total = r + g + b
+    dark = total <= _EPS
+    s = jnp.where(dark, 0.0, 1.0 - 3.0 * jnp.min(rgb, axis=-1) / jnp.where(dark, 1.0, total))
+    return h, s, total / 3.0
+
+
+def circular_mean_deg(angles_deg: Float[Array, "*n"]) -> Float[Array, ""]:
+    """Mean direction of angles in degrees, in [0, 360). Zero for a perfectly balanced set."""
+    rad = jnp.radians(angles_deg)
+    c, s = jnp.mean(jnp.cos(rad)), jnp.mean(jnp.sin(rad))
+    flat = c * c + s * s <= _EPS
+    m = jnp.degrees(jnp.arctan2(jnp.where(flat, 0.0, s), jnp.where(flat, 1.0, c)))
+    return jnp.where(flat, 0.0, jnp.mod(m, 360.0))
+
+
+def wrap_deg(angle_deg: Float[Array, "*n"]) -> Float[Array, "*n"]:
+    """Angle difference wrapped to [-180, 180)."""
+    return jnp.mod(angle_deg + 180.0, 360.0) - 180.0

@@ -1,0 +1,113 @@
+"""Hough stage: a robust initial rim circle from outline points, in JAX (jit/vmap-able).
+
+As in the paper, the outline is transformed into (cx, cy, r) Hough space. Each point votes along
+its inward normal for centres at a set of candidate radii (a 3-D transform summed over r for the
+centre), then the radius is the peak of the histogram of outward-facing points' distances. Lugs
+stick out beyond the rim, so their tips make a second peak at a larger radius: the rim is the
+inner one whenever it is strong. A few algebraic (Kasa) refits on the inliers polish the result.
+Nothing here needs gradients: it only chooses where the least-squares fit starts.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._outline import Outline
+
+N_RADII = 40
+CENTRE_BIN_PX = 4
+
+
+class Circle(eqx.Module):
+    cx_px: Float[Array, ""]
+    cy_px: Float[Array, ""]
+    r_px: Float[Array, ""]
+    support: Float[Array, ""]  # fraction of the circle's visible perimeter with rim evidence
+
+
+def radius_range_px(height: int, width: int) -> tuple[float, float]:
+    """Plausible rim radii: the wheel fills a good part of the frame but fits mostly inside it."""
+    m = min(height, width)
+    return 0.12 * m, 0.75 * m
+
+
+def _kasa(x: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
+    # Algebraic circle fit: minimise sum w (x^2 + y^2 + D x + E y + F)^2, centred for conditioning.
+    sw = jnp.maximum(jnp.sum(w), 1e-9)
+    xm, ym = jnp.sum(w * x) / sw, jnp.sum(w * y) / sw
+    u, v = x - xm, y - ym
+    z = u * u + v * v
+    a = jnp.stack([u, v, jnp.ones_like(u)], -1) * jnp.sqrt(w)[:, None]
+    sol = jnp.linalg.lstsq(a.T @ a + 1e-9 * jnp.eye(3), a.T @ (-z * jnp.sqrt(w)))[0]
+    d, e, f = sol
+    cx, cy = -d / 2, -e / 2
+    r = jnp.sqrt(jnp.maximum(cx * cx + cy * cy - f, 1e-6))
+    return cx + xm, cy + ym, r
+
+
+def hough_rim(outline: Outline, height: int, width: int) -> Circle:
+    """Initial rim circle (image pixels). ``height``/``width`` are static."""
+    dt = outline.x_px.dtype
+    r_min, r_max = radius_range_px(height, width)
+    radii = jnp.linspace(r_min, r_max, N_RADII, dtype=dt)
+    w = outline.weight
+    # Centre votes: p - n r (the normal points outwards on the rim).
+    vx = outline.x_px[:, None] - outline.nx[:, None] * radii[None]
+    vy = outline.y_px[:, None] - outline.ny[:, None] * radii[None]
+    bw = (width + CENTRE_BIN_PX - 1) // CENTRE_BIN_PX
+    bh = (height + CENTRE_BIN_PX - 1) // CENTRE_BIN_PX
+    ix = jnp.floor(vx / CENTRE_BIN_PX).astype(jnp.int32)
+    iy = jnp.floor(vy / CENTRE_BIN_PX).astype(jnp.int32)
+    inside = (ix >= 0) & (ix < bw) & (iy >= 0) & (iy < bh)
+    lin = jnp.where(inside, iy * bw + ix, 0)
+    acc = jnp.zeros(bh * bw, dt).at[lin.ravel()].add((w[:, None] * inside).ravel())
+    acc = acc.reshape(bh, bw)
+    acc = jax.lax.reduce_window(acc, 0.0, jax.lax.add, (3, 3), (1, 1), "SAME")
+    best = jnp.argmax(acc)
+    cx = (best % bw + 0.5) * CENTRE_BIN_PX
+    cy = (best // bw + 0.5) * CENTRE_BIN_PX
+
+    def radius_given_centre(cx: Array, cy: Array) -> Array:
+        dx, dy = outline.x_px - cx, outline.y_px - cy
+        d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
+        align = (dx * outline.nx + dy * outline.ny) / d
+        wr = w * jnp.clip(align, 0.0, 1.0) ** 4
+        nb = int(r_max) + 8
+        hist = jnp.zeros(nb, dt).at[jnp.clip(jnp.round(d).astype(jnp.int32), 0, nb - 1)].add(wr)
+        hist = jnp.convolve(hist, jnp.array([1.0, 2.0, 3.0, 2.0, 1.0], dt), mode="same")
+        rb = jnp.arange(nb, dtype=dt)
+        hist = jnp.where((rb >= r_min) & (rb <= r_max), hist, 0.0)
+        r_peak = jnp.argmax(hist).astype(dt)
+        # Prefer the inner envelope: lug tips form a peak up to ~15% outside the rim.
+        inner = (rb >= 0.85 * r_peak) & (rb <= r_peak - 3.0)
+        h_inner = jnp.where(inner, hist, 0.0)
+        r_inner = jnp.argmax(h_inner).astype(dt)
+        return jnp.where(jnp.max(h_inner) >= 0.35 * jnp.max(hist), r_inner, r_peak)
+
+    r = radius_given_centre(cx, cy)
+
+    def refine(carry: tuple[Array, Array, Array], band: Array) -> tuple[tuple, None]:
+        cx, cy, r = carry
+        dx, dy = outline.x_px - cx, outline.y_px - cy
+        d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
+        align = (dx * outline.nx + dy * outline.ny) / d
+        wi = w * (jnp.abs(d - r) < band) * (align > 0.8)
+        ncx, ncy, nr = _kasa(outline.x_px, outline.y_px, wi)
+        enough = jnp.sum(wi) > 20.0
+        return (
+            jnp.where(enough, ncx, cx),
+            jnp.where(enough, ncy, cy),
+            jnp.where(enough, nr, r),
+        ), None
+
+    bands = jnp.array([6.0, 3.0, 2.0, 1.5], dt)
+    (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands)
+    dx, dy = outline.x_px - cx, outline.y_px - cy
+    d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
+    align = (dx * outline.nx + dy * outline.ny) / d
+    on_rim = w * (jnp.abs(d - r) < 1.5) * (align > 0.8)
+    support = jnp.sum(on_rim) / (2 * jnp.pi * jnp.maximum(r, 1.0))
+    return Circle(cx_px=cx, cy_px=cy, r_px=r, support=support)

@@ -1,0 +1,102 @@
+"""Geometric model stage: rim circle + equivalent line + the two boundary ends, as residuals.
+
+Parameters (one flat vector, image pixels / radians):
+``cx, cy, r`` the rim circle; ``k, b`` the equivalent line y = k x + b in the wheel frame (Eq. 1);
+``alpha_a, c_a`` and ``alpha_b, c_b`` short lines through the boundary's last few pixels at the
+entry and exit ends (angle of the line, signed distance from O), whose intersections with the rim
+are A and B (Eqs. 2-3). Every outline point contributes to one residual slot per group, with a
+fixed weight that says how much it belongs to that group:
+
+- rim points pull on the circle with a redescending (Welsch) loss on d - r, so lug tips and
+  stray edges outside the rim lose their influence;
+- wheel-soil boundary points pull on the line with plain vertical residuals, so on clean data the
+  line is exactly the paper's least-squares line of the boundary;
+- boundary points near each end pull on that end's line with orthogonal residuals.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._geometry import entry_angle_rad, exit_angle_rad, sinkage_px
+
+N_PARAMS = 9
+PARAM_NAMES = ("cx", "cy", "r", "k", "b", "alpha_a", "c_a", "alpha_b", "c_b")
+RIM_LOSS_SCALE_PX = 1.0
+# Tiny pull towards the starting point: keeps the normal equations regular when a group has no
+# points (no contact: no boundary, so no line) without moving well-determined parameters.
+PRIOR_WEIGHT = 1e-4
+
+
+class Evidence(eqx.Module):
+    """Outline points with their group weights, fixed during the solve (args of the residuals)."""
+
+    x_px: Float[Array, " K"]
+    y_px: Float[Array, " K"]
+    w_rim: Float[Array, " K"]
+    w_line: Float[Array, " K"]
+    w_a: Float[Array, " K"]
+    w_b: Float[Array, " K"]
+    sign: Float[Array, ""]  # +1 travel right, -1 travel left
+    start: Float[Array, " 9"]
+
+
+def _welsch(res: Array, scale: float) -> Array:
+    # sqrt of Welsch's rho, signed: ~res for small res, -> bounded for large ones. Written as
+    # res * sqrt(f(u)) with f(u) = (1 - exp(-u)) / u so that it is smooth (no sqrt at 0).
+    u = 0.5 * (res / scale) ** 2
+    small = u < 1e-6
+    f = jnp.where(small, 1.0 - 0.5 * u, -jnp.expm1(-u) / jnp.where(small, 1.0, u))
+    return res * jnp.sqrt(f)
+
+
+def wheel_frame(
+    p: Float[Array, " 9"], ev: Evidence
+) -> tuple[Float[Array, " K"], Float[Array, " K"]]:
+    return ev.sign * (ev.x_px - p[0]), ev.y_px - p[1]
+
+
+def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
+    """Weighted residuals; weighted groups share slots where their members are disjoint."""
+    u, v = wheel_frame(p, ev)
+    d = jnp.sqrt(u * u + v * v + 1e-12)
+    rim = jnp.sqrt(ev.w_rim) * _welsch(d - p[2], RIM_LOSS_SCALE_PX)
+    line = jnp.sqrt(ev.w_line) * (v - p[3] * u - p[4])
+    end_a = jnp.sqrt(ev.w_a) * (-jnp.sin(p[5]) * u + jnp.cos(p[5]) * v - p[6])
+    end_b = jnp.sqrt(ev.w_b) * (-jnp.sin(p[7]) * u + jnp.cos(p[7]) * v - p[8])
+    prior = jnp.sqrt(PRIOR_WEIGHT) * (p - ev.start)
+    # rim and line members are disjoint (outside / inside the rim), so are the two end windows.
+    return jnp.concatenate([rim + line, end_a + end_b, prior])
+
+
+def end_point(
+    alpha: Float[Array, ""], c: Float[Array, ""], r: Float[Array, ""], side: float
+) -> Float[Array, " 2"]:
+    """Intersection of the line -sin(a) u + cos(a) v = c with the rim, on side +1 (A) or -1 (B).
+
+    If the line misses the rim (|c| > r) the point nearest to it on the line's closest approach
+    is returned, which keeps the angle continuous.
+    """
+    foot = c * jnp.stack([-jnp.sin(alpha), jnp.cos(alpha)])
+    t = jnp.stack([jnp.cos(alpha), jnp.sin(alpha)])
+    disc = r * r - c * c
+    half = jnp.sqrt(jnp.where(disc > 1e-9, disc, 1e-9))
+    # Orient the direction so that "+" goes towards the requested side (larger u for A).
+    t = t * jnp.where(t[0] >= 0, 1.0, -1.0)
+    return foot + side * half * t
+
+
+def measurements(p: Float[Array, " 9"], wheel_radius_mm: float | None = None) -> Float[Array, " 3"]:
+    """(z0, theta1 rad, theta2 rad) from the model parameters (Eqs. 1-3).
+
+    z0 is in pixels, or in mm (z0 * R / r) when the rim's physical radius R is given, so that the
+    delta method carries the scale's own uncertainty too.
+    """
+    z0 = sinkage_px(p[3], p[4], p[2])
+    if wheel_radius_mm is not None:
+        z0 = z0 * wheel_radius_mm / p[2]
+    a = end_point(p[5], p[6], p[2], 1.0)
+    b = end_point(p[7], p[8], p[2], -1.0)
+    return jnp.stack([z0, entry_angle_rad(a[0], a[1]), exit_angle_rad(b[0], b[1])])

@@ -1,0 +1,118 @@
+"""Outline stage: sub-pixel edge points of the soft wheel mask, in fixed-size arrays.
+
+The paper takes the wheel's outline from the binary image. Here the outline is the ridge of the
+soft mask's gradient magnitude, thinned by non-maximum suppression (one point per pixel step along
+the edge) and located to sub-pixel precision by a parabola through the ridge. Each point carries
+its unit normal (pointing from wheel to non-wheel), a soft selection weight, and how much wheel
+lies below it in its column (a wheel-soil boundary point has only soil below).
+Shapes are static: at most ``capacity`` points, padded with zero weight, so it jit-compiles once
+per image size and vmaps over frames.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._segmentation import smooth
+
+# A ridge must be at least this strong (mask units per pixel) to count as an edge point at all;
+# the soft weight then ramps up around EDGE_LEVEL.
+_EDGE_MIN = 0.03
+EDGE_LEVEL = 0.08
+EDGE_SOFTNESS = 0.02
+
+
+class Outline(eqx.Module):
+    """Edge points of one frame (padded to a fixed capacity; ``weight`` 0 = absent)."""
+
+    x_px: Float[Array, " K"]
+    y_px: Float[Array, " K"]
+    nx: Float[Array, " K"]
+    ny: Float[Array, " K"]
+    weight: Float[Array, " K"]
+    wheel_below_px: Float[Array, " K"]
+    valid: Bool[Array, " K"]
+    overflow: Bool[Array, ""]
+
+
+def default_capacity(height: int, width: int) -> int:
+    """Room for every edge point a wheel image plausibly has (rim, lugs, holes, boundary)."""
+    return int(6 * (height + width))
+
+
+def _shift(a: Float[Array, "H W"], dy: int, dx: int) -> Float[Array, "H W"]:
+    # out[i, j] = a[i + dy, j + dx] with edge replication.
+    p = jnp.pad(a, 1, mode="edge")
+    h, w = a.shape
+    return p[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+
+
+def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> Outline:
+    """Sub-pixel outline points of a soft mask. ``capacity`` is static."""
+    height, width = mask.shape
+    k = default_capacity(height, width) if capacity is None else capacity
+    m = smooth(mask)
+    # Sobel derivatives, normalised so a unit step blurred over n pixels has slope ~1/n.
+    gx = (
+        _shift(m, -1, 1) + 2 * _shift(m, 0, 1) + _shift(m, 1, 1)
+        - _shift(m, -1, -1) - 2 * _shift(m, 0, -1) - _shift(m, 1, -1)
+    ) / 8.0
+    gy = (
+        _shift(m, 1, -1) + 2 * _shift(m, 1, 0) + _shift(m, 1, 1)
+        - _shift(m, -1, -1) - 2 * _shift(m, -1, 0) - _shift(m, -1, 1)
+    ) / 8.0
+    mag2 = gx * gx + gy * gy
+    mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0)
+    # Quantise the gradient direction to 0/45/90/135 degrees for non-maximum suppression.
+    ang = jnp.mod(jnp.arctan2(gy, jnp.where(mag2 > 0, gx, 1.0)), jnp.pi)
+    q = jnp.round(ang / (jnp.pi / 4)).astype(jnp.int32) % 4
+    steps = ((0, 1), (1, 1), (1, 0), (1, -1))  # (dy, dx) for 0, 45, 90, 135 degrees
+    fwd = jnp.stack([_shift(mag, dy, dx) for dy, dx in steps])
+    bwd = jnp.stack([_shift(mag, -dy, -dx) for dy, dx in steps])
+    e_f = jnp.take_along_axis(fwd, q[None], 0)[0]
+    e_b = jnp.take_along_axis(bwd, q[None], 0)[0]
+    ridge = (mag >= e_f) & (mag > e_b) & (mag > _EDGE_MIN)
+    ridge = ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
+
+    flat = jnp.nonzero(ridge.ravel(), size=k, fill_value=0)[0]
+    count = jnp.sum(ridge)
+    valid = jnp.arange(k) < count
+    rows = flat // width
+    cols = flat % width
+    e0 = mag[rows, cols]
+    ef = e_f[rows, cols]
+    eb = e_b[rows, cols]
+    qq = q[rows, cols]
+    # Parabola through (-1, eb), (0, e0), (1, ef): vertex offset in steps along the direction.
+    curv = eb - 2.0 * e0 + ef
+    ok = curv < -1e-9
+    off = jnp.where(ok, 0.5 * (eb - ef) / jnp.where(ok, curv, -1.0), 0.0)
+    off = jnp.clip(off, -0.5, 0.5)
+    step = jnp.array(steps, dtype=mask.dtype)[qq]  # (K, 2) as (dy, dx)
+    x = cols.astype(mask.dtype) + off * step[:, 1]
+    y = rows.astype(mask.dtype) + off * step[:, 0]
+    g_x = gx[rows, cols]
+    g_y = gy[rows, cols]
+    norm = jnp.where(e0 > 0, e0, 1.0)
+    # Normal from wheel (high mask) to non-wheel: minus the gradient.
+    nx = -g_x / norm
+    ny = -g_y / norm
+    weight = jnp.where(valid, jax.nn.sigmoid((e0 - EDGE_LEVEL) / EDGE_SOFTNESS), 0.0)
+    # Wheel mass strictly below each pixel in its column, starting 3 px down (past the edge's
+    # own blur): a wheel-soil boundary point has ~0, the top edge of a hole has a lot.
+    solid = jax.nn.sigmoid((m - 0.5) / 0.1)
+    below = jnp.flip(jnp.cumsum(jnp.flip(solid, 0), 0), 0)
+    below = jnp.concatenate([below[3:], jnp.zeros((3, width), mask.dtype)], 0)
+    return Outline(
+        x_px=x,
+        y_px=y,
+        nx=nx,
+        ny=ny,
+        weight=weight,
+        wheel_below_px=below[rows, cols],
+        valid=valid,
+        overflow=count > k,
+    )

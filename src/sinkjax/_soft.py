@@ -1,0 +1,201 @@
+"""The soft (differentiable) estimator: image -> z0, theta1, theta2 with one-sigma uncertainty.
+
+``measure`` is the whole method for one frame as a pure JAX function (jit once per image size,
+vmap over frames, grad with respect to the segmentation parameters). ``estimate_batch`` is the
+NumPy-facing wrapper the pipeline and CLI use; it turns each frame into a results row.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from . import _results as R
+from ._fit import build_evidence, fit
+from ._geometry import from_wheel_frame, travel_sign
+from ._hough import hough_rim
+from ._model import end_point, measurements
+from ._outline import extract_outline
+from ._rig import Rig, SegmentationParams
+from ._segmentation import wheel_mask
+from ._uncertainty import covariance, measurement_std
+
+STATUS_CODES = (R.OK, R.NO_CONTACT, R.NO_WHEEL, R.FIT_FAILED)
+_OK, _NO_CONTACT, _NO_WHEEL, _FIT_FAILED = range(4)
+# A rim must show edge evidence along at least this fraction of its circumference.
+MIN_RIM_SUPPORT = 0.2
+# A boundary needs at least this many pixels' worth of points to count as contact.
+MIN_BOUNDARY_POINTS = 4.0
+
+
+class SoftEstimate(eqx.Module):
+    """One frame's soft estimate. Angles in radians; sinkage in mm and px; status codes index
+    :data:`STATUS_CODES`. For no contact the measurements are 0 (conventions §1)."""
+
+    sinkage_mm: Float[Array, ""]
+    sinkage_std_mm: Float[Array, ""]
+    theta1_rad: Float[Array, ""]
+    theta1_std_rad: Float[Array, ""]
+    theta2_rad: Float[Array, ""]
+    theta2_std_rad: Float[Array, ""]
+    params: Float[Array, " 9"]
+    params_std: Float[Array, " 9"]
+    status: Int[Array, ""]
+    boundary_weight: Float[Array, " K"]
+    boundary_x_px: Float[Array, " K"]
+    boundary_y_px: Float[Array, " K"]
+
+
+def measure(
+    image: Float[Array, "H W 3"],
+    seg: SegmentationParams,
+    *,
+    rect: tuple[int, int, int, int],
+    travel: str = "right",
+    wheel_radius_mm: float = 1.0,
+) -> SoftEstimate:
+    """The soft method on one image in [0, 1]. ``rect``, ``travel`` and the radius are static."""
+    height, width = image.shape[:2]
+    mask = wheel_mask(image, seg, rect)
+    outline = extract_outline(mask)
+    # The starting circle is a discrete choice: no gradient flows through it.
+    circle = jax.lax.stop_gradient(hough_rim(outline, height, width))
+    ev = build_evidence(outline, circle, travel_sign(travel))
+    res = fit(ev)
+    p = res.params
+    cov = covariance(p, ev)
+    est = measurements(p, wheel_radius_mm)
+    std = measurement_std(p, cov, wheel_radius_mm)
+    contact = jnp.sum(ev.w_line) >= MIN_BOUNDARY_POINTS
+    status = jnp.where(
+        circle.support < MIN_RIM_SUPPORT,
+        _NO_WHEEL,
+        jnp.where(~res.ok, _FIT_FAILED, jnp.where(contact, _OK, _NO_CONTACT)),
+    )
+    zero_if_no_contact = jnp.where(contact, 1.0, 0.0)
+    return SoftEstimate(
+        sinkage_mm=est[0] * zero_if_no_contact,
+        sinkage_std_mm=std[0],
+        theta1_rad=est[1] * zero_if_no_contact,
+        theta1_std_rad=std[1],
+        theta2_rad=est[2] * zero_if_no_contact,
+        theta2_std_rad=std[2],
+        params=p,
+        params_std=jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0)),
+        status=status.astype(jnp.int32),
+        boundary_weight=ev.w_line,
+        boundary_x_px=ev.x_px,
+        boundary_y_px=ev.y_px,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm"))
+def _measure_batch(
+    images_u8: Array,
+    seg: SegmentationParams,
+    rect: tuple[int, int, int, int],
+    travel: str,
+    wheel_radius_mm: float,
+) -> SoftEstimate:
+    images = images_u8.astype(jnp.float32) / 255.0
+    one = functools.partial(measure, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    return jax.vmap(one, in_axes=(0, None))(images, seg)
+
+
+def _rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> str | None:
+    x, y, w, h = rect
+    if x + w > width or y + h > height:
+        return (
+            f"confidence rectangle {list(rect)} is off the {width}x{height} image; "
+            "fix confidence_rect in the rig file or pass --confidence-rect X,Y,W,H"
+        )
+    return None
+
+
+def estimate_batch(
+    images: list[np.ndarray], rig: Rig, names: list[str], *, pad_to: int | None = None
+) -> list[R.FrameResult]:
+    """Soft estimates for frames of one size (uint8 RGB (H, W, 3) each), one row per frame.
+
+    ``pad_to`` pads the batch (repeating a frame) so that every call has the same shape and the
+    compiled function is reused; by default batches are padded to a power of two.
+    """
+    if len(images) != len(names):
+        raise ValueError(f"got {len(images)} images but {len(names)} names")
+    if not images:
+        return []
+    shape = images[0].shape
+    if any(im.shape != shape for im in images):
+        raise ValueError("estimate_batch needs frames of one size; the pipeline groups them")
+    height, width = shape[:2]
+    problem = _rect_problem(rig.confidence_rect, height, width)
+    if problem is not None:
+        return [R.failed(n, R.BAD_RECT, problem) for n in names]
+    n = len(images)
+    size = pad_to or 1 << (n - 1).bit_length()
+    batch = np.stack(images + [images[0]] * (size - n))
+    out = _measure_batch(
+        jnp.asarray(batch), rig.segmentation, rig.confidence_rect, rig.travel,
+        float(rig.wheel_radius_mm),
+    )
+    out = jax.tree_util.tree_map(np.asarray, out)
+    return [_row(out, i, names[i], rig) for i in range(n)]
+
+
+def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
+    p = out.params[i].astype(float)
+    status = STATUS_CODES[int(out.status[i])]
+    cx, cy, r = float(p[0]), float(p[1]), float(p[2])
+    if status == R.NO_WHEEL:
+        return R.failed(
+            name,
+            R.NO_WHEEL,
+            "no rim circle found: too few wheel-coloured edge pixels on a circle; check the "
+            "confidence rectangle lies on the wheel face and the segmentation thresholds",
+        )
+    if status == R.FIT_FAILED or not np.all(np.isfinite(p)):
+        return R.FrameResult(
+            image=name, status=R.FIT_FAILED, center_x_px=cx, center_y_px=cy, radius_px=r,
+            message="the circle-plus-line fit did not converge; the frame may be blurred or "
+            "the soil and wheel colours too similar",
+        )
+    sign = travel_sign(rig.travel)
+    a = np.asarray(end_point(p[5], p[6], p[2], 1.0))
+    b = np.asarray(end_point(p[7], p[8], p[2], -1.0))
+    ax, ay = (float(t) for t in from_wheel_frame(a[0], a[1], cx, cy, rig.travel))
+    bx, by = (float(t) for t in from_wheel_frame(b[0], b[1], cx, cy, rig.travel))
+    keep = out.boundary_weight[i] > 0.25
+    boundary = np.stack([out.boundary_x_px[i][keep], out.boundary_y_px[i][keep]], -1)
+    k, bb = float(p[3]), float(p[4])
+    line = None
+    if status == R.OK:
+        u0, u1 = float(b[0]), float(a[0])
+        line = (
+            (cx + sign * u0, cy + k * u0 + bb),
+            (cx + sign * u1, cy + k * u1 + bb),
+        )
+    overlay = R.Overlay(
+        centre_px=(cx, cy), radius_px=r, boundary_px=boundary, line_px=line,
+        a_px=(ax, ay) if status == R.OK else None, b_px=(bx, by) if status == R.OK else None,
+    )
+    message = "" if status == R.OK else "the soil does not reach the rim (no wheel-soil boundary)"
+    return R.FrameResult(
+        image=name,
+        status=status,
+        sinkage_mm=float(out.sinkage_mm[i]),
+        sinkage_std_mm=float(out.sinkage_std_mm[i]),
+        theta1_deg=float(np.degrees(out.theta1_rad[i])),
+        theta1_std_deg=float(np.degrees(out.theta1_std_rad[i])),
+        theta2_deg=float(np.degrees(out.theta2_rad[i])),
+        theta2_std_deg=float(np.degrees(out.theta2_std_rad[i])),
+        center_x_px=cx,
+        center_y_px=cy,
+        radius_px=r,
+        message=message,
+        overlay=overlay,
+    )
