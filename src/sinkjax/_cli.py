@@ -1,0 +1,264 @@
+"""The ``sinkjax`` command (conventions §3). Thin: parse, validate, call the API, report.
+
+Subcommands live in :data:`COMMANDS` (name -> :class:`Command`); add one by adding an entry.
+User errors (bad arguments, unusable rig, nothing readable) print one message and exit 2, never a
+traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from types import ModuleType
+
+from ._io import InputError, expand_paths, parse_rect, resolve_rig
+from ._pipeline import MethodUnavailable, estimate_to_csv, load_method
+from ._rig import RigError
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+class UsageError(Exception):
+    """An unusable argument or input; printed as ``sinkjax CMD: error: ...``, exit code 2."""
+
+
+@dataclass(frozen=True)
+class Command:
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+# --------------------------------------------------------------------------------------------
+# estimate
+
+
+def _add_estimate(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "paths",
+        nargs="+",
+        metavar="PATH",
+        help="image files, directories of images (sorted by name; a rig.toml inside is used), "
+        "or video files (one row per frame)",
+    )
+    p.add_argument(
+        "--rig", metavar="RIG.toml", help="rig file (default: rig.toml in the directory)"
+    )
+    p.add_argument(
+        "--wheel-radius-mm", type=float, metavar="R", help="physical rim radius R in mm (overrides)"
+    )
+    p.add_argument(
+        "--confidence-rect",
+        metavar="X,Y,W,H",
+        help="pixel rectangle that always shows the wheel face (overrides)",
+    )
+    p.add_argument("--travel", choices=("right", "left"), help="direction of travel (overrides)")
+    p.add_argument(
+        "--method",
+        choices=("soft", "classic"),
+        default="soft",
+        help="soft: differentiable estimator with uncertainty (default); classic: the paper's",
+    )
+    p.add_argument(
+        "--out", default="results.csv", metavar="CSV", help="results CSV (default: results.csv)"
+    )
+    p.add_argument("--overlay", metavar="DIR", help="also write one overlay PNG per frame here")
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=8,
+        metavar="N",
+        help="frames measured together (soft method only; default: 8)",
+    )
+
+
+def _run_estimate(args: argparse.Namespace) -> int:
+    if args.batch_size < 1:
+        raise UsageError(f"--batch-size must be at least 1, got {args.batch_size}")
+    rect = parse_rect(args.confidence_rect) if args.confidence_rect is not None else None
+    inputs = expand_paths(args.paths)
+    rig = resolve_rig(
+        inputs,
+        rig_path=args.rig,
+        wheel_radius_mm=args.wheel_radius_mm,
+        confidence_rect=rect,
+        travel=args.travel,
+    )
+    try:
+        load_method(args.method)
+    except MethodUnavailable as e:
+        raise UsageError(str(e)) from e
+    try:
+        summary = estimate_to_csv(
+            inputs,
+            rig,
+            args.out,
+            method=args.method,
+            batch_size=args.batch_size,
+            overlay_dir=args.overlay,
+            progress=True,
+        )
+    except OSError as e:
+        raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e
+    print(summary.line())
+    if summary.n_read == 0:
+        raise UsageError(
+            f"none of the {summary.n_frames} input frame(s) could be read (see the message "
+            f"column of {args.out}); check that the PATHs are intact image or video files"
+        )
+    if summary.only_bad_rect:
+        x, y, w, h = rig.confidence_rect
+        raise UsageError(
+            f"the confidence rectangle [{x}, {y}, {w}, {h}] lies off every image; fix "
+            "confidence_rect in the rig or pass --confidence-rect X,Y,W,H inside the images"
+        )
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------------------
+# synth
+
+
+def _add_synth(p: argparse.ArgumentParser) -> None:
+    p.add_argument("out", metavar="OUT", help="directory to write frames, rig.toml, truth.csv")
+    p.add_argument("--frames", type=int, default=12, metavar="N", help="number of frames (12)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (0)")
+    p.add_argument("--preset", default="full", metavar="P", help="scene preset (default: full)")
+    p.add_argument("--width", type=int, default=640, metavar="W", help="image width px (640)")
+    p.add_argument("--height", type=int, default=480, metavar="H", help="image height px (480)")
+    p.add_argument("--travel", choices=("right", "left"), default="right", help="travel (right)")
+
+
+def _load_synth() -> ModuleType:
+    try:
+        from . import _synth
+    except ImportError as e:
+        raise UsageError(f"the synthetic renderer (sinkjax._synth) is not available: {e}") from e
+    return _synth
+
+
+def _run_synth(args: argparse.Namespace) -> int:
+    synth = _load_synth()
+    presets = list(getattr(synth, "PRESETS", []))
+    if presets and args.preset not in presets:
+        raise UsageError(f"unknown --preset {args.preset!r}; choose one of {', '.join(presets)}")
+    if args.frames < 1:
+        raise UsageError(f"--frames must be at least 1, got {args.frames}")
+    if args.width < 32 or args.height < 32:
+        raise UsageError(f"--width/--height must be at least 32 px, got {args.width}x{args.height}")
+    out = synth.write_recording(
+        args.out,
+        n_frames=args.frames,
+        seed=args.seed,
+        preset=args.preset,
+        width=args.width,
+        height=args.height,
+        travel=args.travel,
+        progress=True,
+    )
+    print(f"wrote {args.frames} frames, rig.toml and truth.csv to {out}")
+    print(f"measure them with: sinkjax estimate {out}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------------------
+# demo
+
+
+def _add_demo(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--out", default="sinkjax-demo", metavar="DIR", help="output folder (sinkjax-demo)"
+    )
+    p.add_argument("--method", choices=("soft", "classic"), default="soft", help="method (soft)")
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from ._demo import run_demo
+
+    _load_synth()
+    try:
+        load_method(args.method)
+    except MethodUnavailable as e:
+        raise UsageError(str(e)) from e
+    report = run_demo(args.out, method=args.method, progress=True)
+    print(report.summary.line())
+    print()
+    print(f"errors against the truth ({args.method} method):")
+    print(report.accuracy.table())
+    print()
+    print(f"results:  {report.results_csv}")
+    print(f"overlays: {report.overlay_dir}")
+    print(f"plot:     {report.plot_png}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------------------
+# registry and entry point
+
+COMMANDS: dict[str, Command] = {
+    "estimate": Command(
+        "measure sinkage and angles in images or videos", _add_estimate, _run_estimate
+    ),
+    "synth": Command("write a synthetic recording with ground truth", _add_synth, _run_synth),
+    "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
+    # "calibrate" and "plot" are added here as further entries.
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="sinkjax",
+        description="Wheel sinkage and entry/exit angles from images of a rover wheel.",
+    )
+    parser.add_argument("--version", action="version", version=f"sinkjax {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, command in COMMANDS.items():
+        command.add_arguments(sub.add_parser(name, help=command.help, description=command.help))
+    return parser
+
+
+class _TqdmHandler(logging.Handler):
+    """Warnings on stderr without tearing a progress bar apart."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm import tqdm
+
+        try:
+            tqdm.write(f"sinkjax: warning: {record.getMessage()}", file=sys.stderr)
+        except Exception:
+            self.handleError(record)
+
+
+def _setup_logging() -> None:
+    logger = logging.getLogger("sinkjax")
+    if not any(isinstance(h, _TqdmHandler) for h in logger.handlers):
+        logger.addHandler(_TqdmHandler(level=logging.WARNING))
+    logger.setLevel(logging.WARNING)
+    logger.propagate = False
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``sinkjax``; returns the exit code (0 done, 2 unusable arguments or inputs)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging()
+    try:
+        return COMMANDS[args.command].run(args)
+    except (UsageError, InputError, RigError) as e:
+        print(f"sinkjax {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        kept = f"; the rows finished so far are in {args.out}" if args.command == "estimate" else ""
+        print(f"sinkjax {args.command}: interrupted{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

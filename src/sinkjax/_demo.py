@@ -1,0 +1,139 @@
+"""The demo: render a small synthetic recording, measure it, and compare with the truth."""
+
+from __future__ import annotations
+
+import csv
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+
+from ._io import RIG_FILENAME, resolve_rig
+from ._pipeline import RunSummary, estimate_to_csv
+from ._plots import Matched, match_truth, number, plot_accuracy
+
+DEMO_FRAMES = 12
+DEMO_SEED = 0
+DEMO_PRESET = "full"
+# Relative sinkage errors are only meaningful where there is sinkage to speak of.
+_MIN_SINKAGE_FOR_RELATIVE_MM = 1.0
+
+
+@dataclass
+class Accuracy:
+    """Errors of the measured frames against the truth (absolute values; None when no frames)."""
+
+    n_frames: int
+    n_failed: int
+    failed_by_status: dict[str, int]
+    sinkage_abs_mm: list[float]
+    sinkage_rel_pct: list[float]
+    theta1_abs_deg: list[float]
+    theta2_abs_deg: list[float]
+
+    def table(self) -> str:
+        """A short plain-text table: median and max of each error, then the failures."""
+        rows = [
+            ("|sinkage error| [mm]", self.sinkage_abs_mm),
+            ("|sinkage error| [% of true]", self.sinkage_rel_pct),
+            ("|theta1 error| [deg]", self.theta1_abs_deg),
+            ("|theta2 error| [deg]", self.theta2_abs_deg),
+        ]
+        width = max(len(name) for name, _ in rows)
+        lines = [f"{'':<{width}}  {'median':>8}  {'max':>8}  {'frames':>6}"]
+        for name, values in rows:
+            if values:
+                med, top = f"{statistics.median(values):8.3f}", f"{max(values):8.3f}"
+            else:
+                med = top = f"{'n/a':>8}"
+            lines.append(f"{name:<{width}}  {med}  {top}  {len(values):>6}")
+        failures = ", ".join(f"{n} {s}" for s, n in sorted(self.failed_by_status.items()))
+        lines.append(
+            f"failures: {self.n_failed} of {self.n_frames}" + (f" ({failures})" if failures else "")
+        )
+        return "\n".join(lines)
+
+
+def accuracy(matched: list[Matched]) -> Accuracy:
+    """Absolute errors per quantity over the frames that have both an estimate and a truth."""
+    acc = Accuracy(0, 0, {}, [], [], [], [])
+    for m in matched:
+        if m.truth is None:
+            continue
+        acc.n_frames += 1
+        if not m.measured:
+            acc.n_failed += 1
+            status = m.result.get("status", "?")
+            acc.failed_by_status[status] = acc.failed_by_status.get(status, 0) + 1
+            continue
+        for col, errors in (
+            ("sinkage_mm", acc.sinkage_abs_mm),
+            ("theta1_deg", acc.theta1_abs_deg),
+            ("theta2_deg", acc.theta2_abs_deg),
+        ):
+            est, true = number(m.result.get(col)), number(m.truth.get(col))
+            if est is not None and true is not None:
+                errors.append(abs(est - true))
+                if col == "sinkage_mm" and abs(true) >= _MIN_SINKAGE_FOR_RELATIVE_MM:
+                    acc.sinkage_rel_pct.append(100.0 * abs(est - true) / abs(true))
+    return acc
+
+
+@dataclass
+class DemoReport:
+    out_dir: Path
+    results_csv: Path
+    overlay_dir: Path
+    plot_png: Path
+    summary: RunSummary
+    accuracy: Accuracy
+
+
+def _truth_images(truth_csv: Path) -> list[str]:
+    with open(truth_csv, newline="", encoding="utf-8") as f:
+        return [str(truth_csv.parent / row["image"]) for row in csv.DictReader(f)]
+
+
+def run_demo(
+    out_dir: str | Path = "sinkjax-demo",
+    *,
+    method: str = "soft",
+    n_frames: int = DEMO_FRAMES,
+    progress: bool = True,
+) -> DemoReport:
+    """Render the built-in recording into ``out_dir/recording``, measure it, plot and score it.
+
+    Writes ``results.csv``, ``overlays/`` and ``accuracy.png`` in ``out_dir``. Raises
+    MethodUnavailable if ``method`` cannot be imported.
+    """
+    from ._synth import write_recording
+
+    out = Path(out_dir)
+    recording = Path(
+        write_recording(
+            out / "recording",
+            n_frames=n_frames,
+            seed=DEMO_SEED,
+            preset=DEMO_PRESET,
+            progress=progress,
+        )
+    )
+    truth_csv = recording / "truth.csv"
+    rig = resolve_rig(rig_path=recording / RIG_FILENAME)
+    # The truth lists exactly this run's frames, so leftovers of an older demo are not measured.
+    images = _truth_images(truth_csv)
+    results_csv = out / "results.csv"
+    overlay_dir = out / "overlays"
+    summary = estimate_to_csv(
+        images, rig, results_csv, method=method, overlay_dir=overlay_dir, progress=progress
+    )
+    plot_png = plot_accuracy(
+        results_csv, truth_csv, out / "accuracy.png", title=f"sinkjax demo, method {method}"
+    )
+    return DemoReport(
+        out,
+        results_csv,
+        overlay_dir,
+        plot_png,
+        summary,
+        accuracy(match_truth(results_csv, truth_csv)),
+    )

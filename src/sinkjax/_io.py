@@ -1,0 +1,452 @@
+"""Inputs: PATH arguments -> frames, and the rig they are measured with (conventions §2, §3).
+
+A PATH is an image file, a directory of images (sorted by name; a ``rig.toml`` inside is picked
+up) or a video file (streamed frame by frame, never loaded whole). Every frame comes out as a
+:class:`Frame` holding either an RGB uint8 image of shape (H, W, 3) or the reason it has none.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tomllib
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ._results import BAD_IMAGE, UNREADABLE
+from ._rig import Rig, RigError, rig_from_dict
+
+log = logging.getLogger("sinkjax")
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
+RIG_FILENAME = "rig.toml"
+
+
+class InputError(ValueError):
+    """A PATH argument is unusable (missing, unsupported, empty); the message says what to do."""
+
+
+@dataclass(frozen=True)
+class Source:
+    """One input file. ``name`` is its ``image`` column: the PATH as given joined with the file."""
+
+    kind: str  # "image" or "video"
+    path: Path
+    name: str
+
+
+@dataclass
+class Frame:
+    """One frame to measure: an RGB uint8 (H, W, 3) ``image``, or ``status``/``message`` why not.
+
+    ``stem`` names its overlay file (``frame_001``, ``video_000123``).
+    """
+
+    name: str
+    image: np.ndarray | None
+    status: str = ""
+    message: str = ""
+    stem: str = ""
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """Expanded PATH arguments: the files in order, and the rig files found in directories."""
+
+    sources: tuple[Source, ...]
+    directory_rigs: tuple[Path, ...]
+    nearby_rigs: tuple[Path, ...]
+
+
+def _ext(path: str | Path) -> str:
+    return os.path.splitext(str(path))[1].lower()
+
+
+def is_image_path(path: str | Path) -> bool:
+    return _ext(path) in IMAGE_EXTENSIONS
+
+
+def is_video_path(path: str | Path) -> bool:
+    return _ext(path) in VIDEO_EXTENSIONS
+
+
+def expand_paths(paths: Sequence[str | Path]) -> Inputs:
+    """Expand PATH arguments in order into image and video sources.
+
+    Directories contribute their images sorted by file name (hidden files skipped, not
+    recursive). Raises InputError for a PATH that does not exist, a file that is neither an
+    image nor a video, or when no frames at all are left.
+    """
+    if not paths:
+        raise InputError("no PATH given; pass image files, directories of images or videos")
+    sources: list[Source] = []
+    directory_rigs: list[Path] = []
+    nearby_rigs: list[Path] = []
+    for arg in paths:
+        given = str(arg)
+        p = Path(given)
+        if p.is_dir():
+            rig = p / RIG_FILENAME
+            if rig.is_file():
+                directory_rigs.append(rig)
+            found = _images_in(p, given)
+            if not found:
+                log.warning(
+                    "directory %r contains no images (%s); nothing taken from it",
+                    given,
+                    ", ".join(IMAGE_EXTENSIONS),
+                )
+            sources.extend(found)
+        elif p.is_file():
+            nearby = p.parent / RIG_FILENAME
+            if nearby.is_file() and nearby not in nearby_rigs:
+                nearby_rigs.append(nearby)
+            if is_image_path(p):
+                sources.append(Source("image", p, given))
+            elif is_video_path(p):
+                sources.append(Source("video", p, given))
+            else:
+                hint = ""
+                if p.name == RIG_FILENAME:
+                    hint = f"; to use it pass --rig {given} (or pass its directory as PATH)"
+                raise InputError(
+                    f"{given!r} is neither an image ({', '.join(IMAGE_EXTENSIONS)}) nor a video "
+                    f"({', '.join(VIDEO_EXTENSIONS)}){hint}"
+                )
+        elif p.exists():
+            raise InputError(f"{given!r} is not a regular file or directory")
+        else:
+            raise InputError(f"{given!r} does not exist; check the path")
+    if not sources:
+        raise InputError(
+            "no images or videos found in the given PATHs; a directory must contain image files "
+            f"({', '.join(IMAGE_EXTENSIONS)}) directly (subdirectories are not searched)"
+        )
+    return Inputs(tuple(sources), tuple(directory_rigs), tuple(nearby_rigs))
+
+
+def _images_in(directory: Path, given: str) -> list[Source]:
+    entries = sorted(os.listdir(directory))
+    images = [
+        Source("image", directory / n, os.path.join(given, n))
+        for n in entries
+        if not n.startswith(".") and is_image_path(n) and (directory / n).is_file()
+    ]
+    videos = [n for n in entries if is_video_path(n)]
+    if videos:
+        log.warning(
+            "directory %r: ignored %d video file(s) (%s); pass videos as PATHs themselves",
+            given,
+            len(videos),
+            videos[0] if len(videos) == 1 else f"{videos[0]}, ...",
+        )
+    return images
+
+
+# ---------------------------------------------------------------------------------------------
+# Rig resolution
+
+
+def parse_rect(text: str) -> tuple[int, int, int, int]:
+    """``"X,Y,W,H"`` -> four ints. Raises RigError with the expected form."""
+    parts = [t.strip() for t in text.replace(" ", ",").split(",") if t.strip()]
+    try:
+        values = tuple(int(t) for t in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise RigError(
+            f"--confidence-rect expects four integers X,Y,W,H (pixels), e.g. 300,120,40,30; "
+            f"got {text!r}"
+        )
+    return values  # type: ignore[return-value]
+
+
+def resolve_rig(
+    inputs: Inputs | None = None,
+    *,
+    rig_path: str | Path | None = None,
+    wheel_radius_mm: float | None = None,
+    confidence_rect: tuple[int, int, int, int] | None = None,
+    travel: str | None = None,
+) -> Rig:
+    """The rig for a run: ``rig_path``, else the first directory's ``rig.toml``, then the flags.
+
+    Each flag that is not None overrides one field. Raises RigError saying what to pass.
+    """
+    flags: dict[str, Any] = {}
+    if wheel_radius_mm is not None:
+        flags["wheel_radius_mm"] = float(wheel_radius_mm)
+    if confidence_rect is not None:
+        flags["confidence_rect"] = list(confidence_rect)
+    if travel is not None:
+        flags["travel"] = travel
+
+    file: Path | None = None
+    if rig_path is not None:
+        file = Path(rig_path)
+        if not file.is_file():
+            raise RigError(f"rig file {str(rig_path)!r} does not exist; check the --rig path")
+    elif inputs is not None and inputs.directory_rigs:
+        file = inputs.directory_rigs[0]
+        _warn_differing_rigs(file, inputs.directory_rigs[1:])
+
+    if file is None and not flags:
+        nearby = ""
+        if inputs is not None and inputs.nearby_rigs:
+            found = inputs.nearby_rigs[0]
+            nearby = f"; there is {found} next to your inputs: pass --rig {found}"
+        raise RigError(
+            "no rig: pass --rig RIG.toml, or put a rig.toml in the image directory, or pass "
+            "--wheel-radius-mm R and --confidence-rect X,Y,W,H (the rim radius in mm and a "
+            f"pixel rectangle that always shows the wheel face){nearby}"
+        )
+    data: dict[str, Any] = {}
+    source = "command line"
+    if file is not None:
+        data = _read_toml(file)
+        source = str(file) + (" with command-line overrides" if flags else "")
+    data.update(flags)
+    return rig_from_dict(data, source=source)
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise RigError(f"{path}: not a readable TOML rig file ({e})") from e
+
+
+def _warn_differing_rigs(used: Path, others: Sequence[Path]) -> None:
+    try:
+        first = _read_toml(used)
+    except RigError:
+        return  # reported properly when the rig is built
+    for other in others:
+        try:
+            same = _read_toml(other) == first
+        except RigError:
+            same = False
+        if not same:
+            log.warning(
+                "using rig %s for every PATH; %s differs and is ignored (run its directory "
+                "separately or pass --rig)",
+                used,
+                other,
+            )
+
+
+def check_rect(shape: tuple[int, ...], rig: Rig) -> str | None:
+    """None if the rig's confidence rectangle lies inside an image of ``shape``; else why not."""
+    height, width = int(shape[0]), int(shape[1])
+    x, y, w, h = rig.confidence_rect
+    if x + w <= width and y + h <= height:
+        return None
+    return (
+        f"confidence_rect [{x}, {y}, {w}, {h}] extends beyond the {width}x{height} image "
+        f"(needs x+w <= {width} and y+h <= {height}); fix confidence_rect in the rig or pass "
+        "--confidence-rect X,Y,W,H"
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading pixels
+
+
+def to_rgb8(array: np.ndarray, *, bgr: bool = True) -> np.ndarray:
+    """Any decoded image -> RGB uint8 (H, W, 3).
+
+    Grey (H, W) or (H, W, 1) is repeated over 3 channels; grey+alpha keeps the grey; a 4th
+    (alpha) channel is dropped, not composited; uint16 is scaled by 255/65535 over the FULL
+    16-bit range (no per-frame stretch, which would shift colours between frames). ``bgr``: the
+    input is in OpenCV's BGR(A) order. Raises ValueError for other shapes or pixel types.
+    """
+    a = np.asarray(array)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or a.shape[0] < 1 or a.shape[1] < 1:
+        raise ValueError(f"unsupported image shape {a.shape}; expected (H, W) or (H, W, 1-4)")
+    if a.dtype == np.uint16:
+        a = ((a.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+    elif a.dtype != np.uint8:
+        raise ValueError(f"unsupported pixel type {a.dtype}; convert the image to 8 or 16 bit")
+    channels = a.shape[2]
+    if channels <= 2:
+        rgb = np.repeat(a[:, :, :1], 3, axis=2)
+    else:
+        rgb = a[:, :, :3]
+        if bgr:
+            rgb = rgb[:, :, ::-1]
+    return np.ascontiguousarray(rgb)
+
+
+_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "PNG"),
+    (b"\xff\xd8", "JPEG"),
+    (b"BM", "BMP"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+)
+
+
+def _format_of(data: bytes) -> str | None:
+    for magic, name in _SIGNATURES:
+        if data.startswith(magic):
+            return name
+    return None
+
+
+def _jpeg_complete(data: bytes) -> bool:
+    """True if the JPEG's first scan is followed by an end-of-image marker.
+
+    Walks the marker segments up to the first SOS so that an EXIF thumbnail (inside APP1, with
+    its own EOI) cannot make a truncated main image look complete. Inside scan data 0xFF is
+    byte-stuffed, so an FF D9 after the SOS is a real end marker.
+    """
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return False
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0xDA:
+            return data.find(b"\xff\xd9", i) != -1
+        if 0xD0 <= marker <= 0xD9 or marker == 0x01:
+            i += 2
+            continue
+        i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
+    return False
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read one image file as RGB uint8 (H, W, 3) (see :func:`to_rgb8` for the conversions).
+
+    Raises OSError if the file cannot be read and ValueError (message in words) if it is empty,
+    truncated, not an image, or of an unsupported pixel type.
+    """
+    data = Path(path).read_bytes()
+    if not data:
+        raise ValueError("empty file (0 bytes)")
+    fmt = _format_of(data)
+    if fmt is None:
+        raise ValueError("not an image: the content is not PNG, JPEG, BMP or TIFF")
+    if fmt == "PNG" and b"IEND" not in data[-16:]:
+        raise ValueError(f"truncated PNG ({len(data)} bytes, no end chunk)")
+    if fmt == "JPEG" and not _jpeg_complete(data):
+        raise ValueError(f"truncated JPEG ({len(data)} bytes, no end-of-image marker)")
+    decoded = _quiet_imdecode(data)
+    if decoded is None:
+        raise ValueError(f"corrupt {fmt}: OpenCV could not decode it")
+    return to_rgb8(decoded, bgr=True)
+
+
+def _quiet_imdecode(data: bytes) -> np.ndarray | None:
+    # We report decode failures per frame ourselves; OpenCV's own warnings would only add noise.
+    logging_api = getattr(getattr(cv2, "utils", None), "logging", None)
+    previous = None
+    if logging_api is not None:
+        previous = logging_api.getLogLevel()
+        logging_api.setLogLevel(logging_api.LOG_LEVEL_ERROR)
+    try:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        return None
+    finally:
+        if logging_api is not None and previous is not None:
+            logging_api.setLogLevel(previous)
+
+
+def _image_frame(source: Source) -> Frame:
+    stem = source.path.stem
+    try:
+        image = read_image(source.path)
+    except OSError as e:
+        return Frame(source.name, None, UNREADABLE, f"cannot read file: {e.strerror or e}", stem)
+    except ValueError as e:
+        status = BAD_IMAGE if str(e).startswith("unsupported") else UNREADABLE
+        return Frame(source.name, None, status, str(e), stem)
+    return Frame(source.name, image, stem=stem)
+
+
+def _video_frames(source: Source) -> Iterator[Frame]:
+    capture = cv2.VideoCapture(str(source.path))
+    try:
+        if not capture.isOpened():
+            yield Frame(
+                source.name,
+                None,
+                UNREADABLE,
+                "could not open the video (corrupt, empty, or a codec OpenCV lacks)",
+                source.path.stem,
+            )
+            return
+        index = 0
+        while True:
+            ok, bgr = capture.read()
+            if not ok or bgr is None:
+                break
+            name = f"{source.name}#{index:06d}"
+            stem = f"{source.path.stem}_{index:06d}"
+            try:
+                yield Frame(name, to_rgb8(bgr, bgr=True), stem=stem)
+            except ValueError as e:
+                yield Frame(name, None, BAD_IMAGE, str(e), stem)
+            index += 1
+        if index == 0:
+            yield Frame(
+                source.name,
+                None,
+                UNREADABLE,
+                "the video has no decodable frames",
+                source.path.stem,
+            )
+        else:
+            expected = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+            if math.isfinite(expected) and expected > 0 and index < 0.95 * expected:
+                log.warning(
+                    "%s: decoding stopped after %d of %d frames (truncated or corrupt video?)",
+                    source.name,
+                    index,
+                    int(expected),
+                )
+    finally:
+        capture.release()
+
+
+def iter_frames(sources: Sequence[Source]) -> Iterator[Frame]:
+    """Frames of ``sources`` in order, read lazily: one image or one video frame at a time."""
+    for source in sources:
+        if source.kind == "video":
+            yield from _video_frames(source)
+        else:
+            yield _image_frame(source)
+
+
+def count_frames(sources: Sequence[Source]) -> int:
+    """The number of frames to expect (video containers' frame counts; may be approximate)."""
+    total = 0
+    for source in sources:
+        if source.kind != "video":
+            total += 1
+            continue
+        capture = cv2.VideoCapture(str(source.path))
+        try:
+            n = capture.get(cv2.CAP_PROP_FRAME_COUNT) if capture.isOpened() else 0.0
+        finally:
+            capture.release()
+        total += int(n) if math.isfinite(n) and n > 0 else 1
+    return total
+
+
+def read_frames(paths: Sequence[str | Path]) -> Iterator[Frame]:
+    """Frames of PATH arguments in order: :func:`expand_paths`, then :func:`iter_frames`."""
+    return iter_frames(expand_paths(paths).sources)

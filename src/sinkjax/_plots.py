@@ -1,0 +1,156 @@
+"""Plots of results against ground truth (matplotlib's Agg renderer: no display needed)."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from ._results import NO_CONTACT, OK
+
+QUANTITIES = (
+    # (results column, std column, truth column, label, unit)
+    ("sinkage_mm", "sinkage_std_mm", "sinkage_mm", "sinkage z0", "mm"),
+    ("theta1_deg", "theta1_std_deg", "theta1_deg", "entry angle θ1", "deg"),
+    ("theta2_deg", "theta2_std_deg", "theta2_deg", "exit angle θ2", "deg"),
+)
+
+
+@dataclass
+class Matched:
+    """One results row with its truth row (``truth`` None when the truth has no such image)."""
+
+    result: dict[str, str]
+    truth: dict[str, str] | None
+
+    @property
+    def measured(self) -> bool:
+        return self.result.get("status") in (OK, NO_CONTACT)
+
+
+def number(cell: str | None) -> float | None:
+    """A CSV cell as a float; None for an empty or non-numeric cell."""
+    if cell is None or not cell.strip():
+        return None
+    try:
+        value = float(cell)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _read_rows(path: str | Path) -> list[dict[str, str]]:
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames is None or "image" not in reader.fieldnames:
+            raise ValueError(f"{path}: not a CSV with an 'image' column")
+        return list(reader)
+
+
+def _key(image: str, base: Path) -> tuple[str, str]:
+    path, sep, frame = image.partition("#")
+    p = Path(path)
+    return os.path.normcase(os.path.abspath(p if p.is_absolute() else base / p)), sep + frame
+
+
+def match_truth(results_csv: str | Path, truth_csv: str | Path) -> list[Matched]:
+    """Results rows paired with truth rows, in results order.
+
+    Results ``image`` paths are relative to the working directory (as given on the command line),
+    truth paths to the truth CSV's folder (the LABELS convention); when no path matches, a
+    unique file name does. Raises ValueError for a file that is not such a CSV.
+    """
+    results = _read_rows(results_csv)
+    truth = _read_rows(truth_csv)
+    truth_dir = Path(truth_csv).parent
+    by_path = {_key(t["image"], truth_dir): t for t in truth}
+    by_name: dict[str, dict[str, str] | None] = {}
+    for row in truth:
+        name = os.path.basename(row["image"])
+        by_name[name] = None if name in by_name else row  # None: ambiguous
+    out = []
+    for r in results:
+        match = by_path.get(_key(r["image"], Path.cwd()))
+        if match is None:
+            match = by_name.get(os.path.basename(r["image"]))
+        out.append(Matched(r, match))
+    return out
+
+
+def plot_accuracy(
+    results_csv: str | Path,
+    truth_csv: str | Path,
+    out_png: str | Path,
+    *,
+    title: str | None = None,
+) -> Path:
+    """Estimated against true sinkage (mm), θ1 and θ2 (deg): one panel each, PNG at ``out_png``.
+
+    Error bars are one standard deviation where the results have std columns (clipped to the
+    panel, which spans the values); frames without an estimate are marked on the x axis at their
+    true value. Returns the PNG's path.
+    """
+    # A bare Figure renders with Agg and leaves pyplot's global backend alone (notebooks).
+    from matplotlib.figure import Figure
+    from matplotlib.transforms import blended_transform_factory
+
+    matched = [m for m in match_truth(results_csv, truth_csv) if m.truth is not None]
+    n_failed = sum(not m.measured for m in matched)
+    fig = Figure(figsize=(13.5, 4.6), layout="constrained")
+    axes = fig.subplots(1, 3)
+    for ax, (col, std_col, truth_col, label, unit) in zip(axes, QUANTITIES, strict=True):
+        xs, ys, es, misses = [], [], [], []
+        for m in matched:
+            assert m.truth is not None
+            true = number(m.truth.get(truth_col))
+            if true is None:
+                continue
+            est = number(m.result.get(col)) if m.measured else None
+            if est is None:
+                misses.append(true)
+                continue
+            xs.append(true)
+            ys.append(est)
+            es.append(number(m.result.get(std_col)) or 0.0)
+        values = xs + ys + misses
+        lo, hi = (min(values), max(values)) if values else (0.0, 1.0)
+        pad = 0.05 * (hi - lo) + 1e-9
+        ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=1, label="identity (y = x)")
+        if xs:
+            has_std = any(e > 0 for e in es)
+            ax.errorbar(
+                xs,
+                ys,
+                yerr=es if has_std else None,
+                fmt="o",
+                ms=4,
+                capsize=3,
+                label="estimate ± 1σ" if has_std else "estimate",
+            )
+        if misses:
+            trans = blended_transform_factory(ax.transData, ax.transAxes)
+            ax.plot(
+                misses,
+                [0.02] * len(misses),
+                "x",
+                color="tab:red",
+                transform=trans,
+                label="no estimate (at true value)",
+            )
+        # Limits from the values, not the error bars: one frame with a huge sigma must not
+        # squash every other point onto the identity line.
+        ax.set_xlim(lo - pad, hi + pad)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.set_xlabel(f"true {label} [{unit}]")
+        ax.set_ylabel(f"estimated {label} [{unit}]")
+        ax.set_title(label)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper left", fontsize=8)
+    heading = title or "Estimated vs true"
+    fig.suptitle(f"{heading} ({len(matched)} frames, {n_failed} without an estimate)")
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    return out
