@@ -22,10 +22,11 @@ from ._outline import Outline
 
 # Band around the rim (px) that counts as rim evidence, and the gap kept free between the rim
 # and the boundary points (where the soil edge and the rim edge meet, neither is clean).
-RIM_BAND_IN_PX = 2.5
+RIM_BAND_IN_PX = 1.5
 RIM_BAND_OUT_PX = 4.0
-# Pixels of wheel allowed below a boundary point in its column (speckle), as a soft scale.
-WHEEL_BELOW_SCALE_PX = 4.0
+# Wheel allowed below a boundary point in its column (px, soft scale). Small: the top edge of a
+# lightening hole near the soil has only a few pixels of wheel between the hole and the soil.
+WHEEL_BELOW_SCALE_PX = 0.75
 
 
 def end_window_px(r_px: Array) -> Array:
@@ -56,7 +57,8 @@ def build_evidence(outline: Outline, circle: Circle, sign: float) -> Evidence:
     w = outline.weight
     dr = d - circle.r_px
     in_band = (dr >= -RIM_BAND_IN_PX) & (dr <= RIM_BAND_OUT_PX)
-    w_rim = w * in_band * jax.nn.sigmoid((align - 0.75) / 0.05)
+    outer = jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
+    w_rim = w * in_band * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
 
     inside = dr < -RIM_BAND_IN_PX
     faces_down = jax.nn.sigmoid((outline.ny - 0.3) / 0.1)
@@ -72,12 +74,19 @@ def build_evidence(outline: Outline, circle: Circle, sign: float) -> Evidence:
     win = end_window_px(circle.r_px)
     near_a = jnp.hypot(u - u[i_a], v - v[i_a]) < win
     near_b = jnp.hypot(u - u[i_b], v - v[i_b]) < win
-    w_a = w_line * near_a * (u > 0.0)
-    w_b = w_line * near_b * (u < 0.0) * ~near_a
+    w_a = w_line * near_a
+    w_b = w_line * near_b * ~near_a
 
     k0, b0 = equivalent_line(u, v, w_line)
+    # An end with too few points (a very short boundary) starts from the equivalent line.
+    line_alpha = jnp.arctan(k0)
+    line_c = b0 * jnp.cos(line_alpha)
     alpha_a, c_a = _orthogonal_line(u, v, w_a)
     alpha_b, c_b = _orthogonal_line(u, v, w_b)
+    few_a = jnp.sum(w_a) < 3.0
+    few_b = jnp.sum(w_b) < 3.0
+    alpha_a, c_a = jnp.where(few_a, line_alpha, alpha_a), jnp.where(few_a, line_c, c_a)
+    alpha_b, c_b = jnp.where(few_b, line_alpha, alpha_b), jnp.where(few_b, line_c, c_b)
     start = jnp.stack(
         [circle.cx_px, circle.cy_px, circle.r_px, k0, b0, alpha_a, c_a, alpha_b, c_b]
     ).astype(dt)
@@ -104,7 +113,7 @@ def fit(ev: Evidence, *, max_steps: int = 48) -> FitResult:
     """The single joint Levenberg-Marquardt solve (implicit differentiation through it)."""
     # Normal equations + Cholesky: the Jacobian is tall (thousands of points x 9 parameters) and
     # well conditioned, and this is several times faster than QR on the CPU.
-    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, linear_solver=lx.Normal(lx.Cholesky()))
+    solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5, linear_solver=lx.Normal(lx.Cholesky()))
     sol = optx.least_squares(
         residuals, solver, ev.start, args=ev, max_steps=max_steps, throw=False
     )

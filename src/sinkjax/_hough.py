@@ -13,11 +13,11 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._outline import Outline
 
-N_RADII = 40
 CENTRE_BIN_PX = 4
 
 
@@ -52,8 +52,12 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
     """Initial rim circle (image pixels). ``height``/``width`` are static."""
     dt = outline.x_px.dtype
     r_min, r_max = radius_range_px(height, width)
-    radii = jnp.linspace(r_min, r_max, N_RADII, dtype=dt)
-    w = outline.weight
+    # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin of the
+    # true centre for the nearest candidate (coarser steps smear the votes into a ring).
+    n_radii = int(np.ceil((r_max - r_min) / CENTRE_BIN_PX)) + 1
+    radii = jnp.linspace(r_min, r_max, n_radii, dtype=dt)
+    # Only edges with non-wheel beyond them can be the rim (or lug tips).
+    w = outline.weight * jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     # Centre votes: p - n r (the normal points outwards on the rim).
     vx = outline.x_px[:, None] - outline.nx[:, None] * radii[None]
     vy = outline.y_px[:, None] - outline.ny[:, None] * radii[None]
@@ -70,7 +74,7 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
     cx = (best % bw + 0.5) * CENTRE_BIN_PX
     cy = (best // bw + 0.5) * CENTRE_BIN_PX
 
-    def radius_given_centre(cx: Array, cy: Array) -> Array:
+    def histogram(cx: Array, cy: Array) -> tuple[Array, Array]:
         dx, dy = outline.x_px - cx, outline.y_px - cy
         d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
         align = (dx * outline.nx + dy * outline.ny) / d
@@ -79,15 +83,7 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
         hist = jnp.zeros(nb, dt).at[jnp.clip(jnp.round(d).astype(jnp.int32), 0, nb - 1)].add(wr)
         hist = jnp.convolve(hist, jnp.array([1.0, 2.0, 3.0, 2.0, 1.0], dt), mode="same")
         rb = jnp.arange(nb, dtype=dt)
-        hist = jnp.where((rb >= r_min) & (rb <= r_max), hist, 0.0)
-        r_peak = jnp.argmax(hist).astype(dt)
-        # Prefer the inner envelope: lug tips form a peak up to ~15% outside the rim.
-        inner = (rb >= 0.85 * r_peak) & (rb <= r_peak - 3.0)
-        h_inner = jnp.where(inner, hist, 0.0)
-        r_inner = jnp.argmax(h_inner).astype(dt)
-        return jnp.where(jnp.max(h_inner) >= 0.35 * jnp.max(hist), r_inner, r_peak)
-
-    r = radius_given_centre(cx, cy)
+        return jnp.where((rb >= r_min) & (rb <= r_max), hist, 0.0), rb
 
     def refine(carry: tuple[Array, Array, Array], band: Array) -> tuple[tuple, None]:
         cx, cy, r = carry
@@ -103,8 +99,20 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
             jnp.where(enough, nr, r),
         ), None
 
-    bands = jnp.array([6.0, 3.0, 2.0, 1.5], dt)
+    # The Hough centre is only good to a few pixels (a degree of normal error moves a vote by
+    # r * 1 deg), so first converge on the strongest circle with shrinking bands...
+    hist, rb = histogram(cx, cy)
+    r = rb[jnp.argmax(hist)]
+    bands = jnp.array([10.0, 6.0, 4.0, 3.0, 2.0, 1.5], dt)
     (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands)
+    # ...then, with a sharp histogram, prefer the inner envelope: lug tips make a peak up to
+    # ~15% outside the rim, and the rim is the inner one whenever it is strong.
+    hist, rb = histogram(cx, cy)
+    inner = (rb >= 0.85 * r) & (rb <= r - 3.0)
+    h_inner = jnp.where(inner, hist, 0.0)
+    use_inner = jnp.max(h_inner) >= 0.35 * jnp.max(hist)
+    r = jnp.where(use_inner, rb[jnp.argmax(h_inner)], r)
+    (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands[3:])
     dx, dy = outline.x_px - cx, outline.y_px - cy
     d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
     align = (dx * outline.nx + dy * outline.ny) / d

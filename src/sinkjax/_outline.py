@@ -34,6 +34,7 @@ class Outline(eqx.Module):
     ny: Float[Array, " K"]
     weight: Float[Array, " K"]
     wheel_below_px: Float[Array, " K"]
+    mask_beyond: Float[Array, " K"]
     valid: Bool[Array, " K"]
     overflow: Bool[Array, ""]
 
@@ -106,6 +107,10 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     solid = jax.nn.sigmoid((m - 0.5) / 0.1)
     below = jnp.flip(jnp.cumsum(jnp.flip(solid, 0), 0), 0)
     below = jnp.concatenate([below[3:], jnp.zeros((3, width), mask.dtype)], 0)
+    # Mask 3 px beyond the edge: ~0 on the wheel's true outline (rim, lug tips, boundary), high
+    # on a partial edge inside the wheel (a darker rim ring, shading), which must not be the rim.
+    bx = jnp.clip(jnp.round(x + 3.0 * nx).astype(jnp.int32), 0, width - 1)
+    by = jnp.clip(jnp.round(y + 3.0 * ny).astype(jnp.int32), 0, height - 1)
     return Outline(
         x_px=x,
         y_px=y,
@@ -113,6 +118,57 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
         ny=ny,
         weight=weight,
         wheel_below_px=below[rows, cols],
+        mask_beyond=m[by, bx],
         valid=valid,
         overflow=count > k,
+    )
+
+
+REFINE_HALF_WIDTH_PX = 3.0
+REFINE_STEP_PX = 0.5
+# Luma and the two chroma axes (BT.601). Video and JPEG keep luma at full resolution but halve
+# chroma, so chroma edges are smeared: the profile leans on luma where luma has contrast.
+_YCC = ((0.299, 0.587, 0.114), (-0.169, -0.331, 0.5), (0.5, -0.419, -0.081))
+CHROMA_WEIGHT = 0.25
+
+
+def refine_outline(image: Float[Array, "H W 3"], outline: Outline) -> Outline:
+    """Move each outline point along its normal to where the image is halfway between its sides.
+
+    The mask finds edges but is a poor ruler: a hue/saturation threshold on a blurred or JPEG-ed
+    pixel that mixes wheel and soil does not fire at 50 % coverage, so mask edges sit up to a
+    pixel or two inside the darker or less saturated side. Colours mix linearly under blur and
+    anti-aliasing, so along the normal the image goes from the inner colour c_in to the outer
+    c_out; projecting onto (c_in - c_out) gives a profile from 1 to 0 whose integral over the
+    window is the distance from the window's start to the edge, for any symmetric blur. That
+    integral is linear in the pixels (noise averages out) and differentiable.
+    """
+    half, step = REFINE_HALF_WIDTH_PX, REFINE_STEP_PX
+    ts = jnp.arange(-half, half + 0.5 * step, step, dtype=image.dtype)
+    px = outline.x_px[:, None] + ts[None] * outline.nx[:, None]
+    py = outline.y_px[:, None] + ts[None] * outline.ny[:, None]
+    samples = jnp.stack(
+        [
+            jax.scipy.ndimage.map_coordinates(image[..., c], [py, px], order=1, mode="nearest")
+            for c in range(3)
+        ],
+        -1,
+    )
+    ycc = jnp.asarray(_YCC, image.dtype) * jnp.asarray([1.0, CHROMA_WEIGHT, CHROMA_WEIGHT], image.dtype)[:, None]
+    samples = samples @ ycc.T
+    c_in = jnp.mean(samples[:, :3], axis=1)
+    c_out = jnp.mean(samples[:, -3:], axis=1)
+    diff = c_in - c_out
+    contrast2 = jnp.sum(diff * diff, -1)
+    ok = contrast2 > 0.02**2
+    proj = jnp.einsum("ktc,kc->kt", samples - c_out[:, None], diff) / jnp.where(ok, contrast2, 1.0)[
+        :, None
+    ]
+    # Trapezoid integral of the profile from the window's start: the edge's offset from -half.
+    t_edge = -half + step * (jnp.sum(proj, 1) - 0.5 * (proj[:, 0] + proj[:, -1]))
+    shift = jnp.where(ok, jnp.clip(t_edge, -2.0, 2.0), 0.0)
+    return eqx.tree_at(
+        lambda o: (o.x_px, o.y_px),
+        outline,
+        (outline.x_px + shift * outline.nx, outline.y_px + shift * outline.ny),
     )

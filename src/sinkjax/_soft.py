@@ -20,7 +20,7 @@ from ._fit import build_evidence, fit
 from ._geometry import from_wheel_frame, travel_sign
 from ._hough import hough_rim
 from ._model import end_point, measurements
-from ._outline import extract_outline
+from ._outline import extract_outline, refine_outline
 from ._rig import Rig, SegmentationParams
 from ._segmentation import wheel_mask
 from ._uncertainty import covariance, measurement_std
@@ -62,7 +62,7 @@ def measure(
     """The soft method on one image in [0, 1]. ``rect``, ``travel`` and the radius are static."""
     height, width = image.shape[:2]
     mask = wheel_mask(image, seg, rect)
-    outline = extract_outline(mask)
+    outline = refine_outline(image, extract_outline(mask))
     # The starting circle is a discrete choice: no gradient flows through it.
     circle = jax.lax.stop_gradient(hough_rim(outline, height, width))
     ev = build_evidence(outline, circle, travel_sign(travel))
@@ -183,7 +183,13 @@ def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
         centre_px=(cx, cy), radius_px=r, boundary_px=boundary, line_px=line,
         a_px=(ax, ay) if status == R.OK else None, b_px=(bx, by) if status == R.OK else None,
     )
-    message = "" if status == R.OK else "the soil does not reach the rim (no wheel-soil boundary)"
+    if status == R.NO_CONTACT:
+        # Conventions §1: zeros. The fit has no boundary to be uncertain about: no sigma.
+        return R.FrameResult(
+            image=name, status=status, sinkage_mm=0.0, theta1_deg=0.0, theta2_deg=0.0,
+            center_x_px=cx, center_y_px=cy, radius_px=r, overlay=overlay,
+            message="the soil does not reach the rim (no wheel-soil boundary inside the rim)",
+        )
     return R.FrameResult(
         image=name,
         status=status,
@@ -196,6 +202,5 @@ def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
         center_x_px=cx,
         center_y_px=cy,
         radius_px=r,
-        message=message,
         overlay=overlay,
     )
