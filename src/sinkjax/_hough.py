@@ -71,8 +71,8 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
     acc = acc.reshape(bh, bw)
     acc = jax.lax.reduce_window(acc, 0.0, jax.lax.add, (3, 3), (1, 1), "SAME")
     best = jnp.argmax(acc)
-    cx = (best % bw + 0.5) * CENTRE_BIN_PX
-    cy = (best // bw + 0.5) * CENTRE_BIN_PX
+    cx = ((best % bw + 0.5) * CENTRE_BIN_PX).astype(dt)
+    cy = ((best // bw + 0.5) * CENTRE_BIN_PX).astype(dt)
 
     def histogram(cx: Array, cy: Array) -> tuple[Array, Array]:
         dx, dy = outline.x_px - cx, outline.y_px - cy
@@ -94,16 +94,16 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
         ncx, ncy, nr = _kasa(outline.x_px, outline.y_px, wi)
         enough = jnp.sum(wi) > 20.0
         return (
-            jnp.where(enough, ncx, cx),
-            jnp.where(enough, ncy, cy),
-            jnp.where(enough, nr, r),
+            jnp.where(enough, ncx, cx).astype(dt),
+            jnp.where(enough, ncy, cy).astype(dt),
+            jnp.where(enough, nr, r).astype(dt),
         ), None
 
     # The Hough centre is only good to a few pixels (a degree of normal error moves a vote by
     # r * 1 deg), so first converge on the strongest circle with shrinking bands...
     hist, rb = histogram(cx, cy)
     r = rb[jnp.argmax(hist)]
-    bands = jnp.array([10.0, 6.0, 4.0, 3.0, 2.0, 1.5], dt)
+    bands = jnp.array([25.0, 15.0, 10.0, 6.0, 4.0, 3.0, 2.0, 1.5], dt)
     (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands)
     # ...then, with a sharp histogram, prefer the inner envelope: lug tips make a peak up to
     # ~15% outside the rim, and the rim is the inner one whenever it is strong.
@@ -112,7 +112,7 @@ def hough_rim(outline: Outline, height: int, width: int) -> Circle:
     h_inner = jnp.where(inner, hist, 0.0)
     use_inner = jnp.max(h_inner) >= 0.35 * jnp.max(hist)
     r = jnp.where(use_inner, rb[jnp.argmax(h_inner)], r)
-    (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands[3:])
+    (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands[5:])
     dx, dy = outline.x_px - cx, outline.y_px - cy
     d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
     align = (dx * outline.nx + dy * outline.ny) / d

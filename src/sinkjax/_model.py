@@ -25,6 +25,11 @@ from ._geometry import entry_angle_rad, exit_angle_rad, sinkage_px
 N_PARAMS = 9
 PARAM_NAMES = ("cx", "cy", "r", "k", "b", "alpha_a", "c_a", "alpha_b", "c_b")
 RIM_LOSS_SCALE_PX = 1.0
+# Each end line's angle is pulled towards the equivalent line's with the weight of this many
+# boundary points at the end window's length: nothing when the window is well populated, but a
+# short window (shallow sinkage) no longer swings the end around.
+END_ANGLE_PRIOR_POINTS = 2.0
+END_LEVER_PX = 10.0
 # Tiny pull towards the starting point: keeps the normal equations regular when a group has no
 # points (no contact: no boundary, so no line) without moving well-determined parameters.
 PRIOR_WEIGHT = 1e-4
@@ -52,6 +57,13 @@ def _welsch(res: Array, scale: float) -> Array:
     return res * jnp.sqrt(f)
 
 
+def _sqrt_weight(w: Array) -> Array:
+    # Double where: sqrt has an infinite derivative at 0, and most slots have weight 0 (padding,
+    # other groups); inf * 0 would make the gradient with respect to the mask NaN.
+    pos = w > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, w, 1.0)), 0.0)
+
+
 def wheel_frame(
     p: Float[Array, " 9"], ev: Evidence
 ) -> tuple[Float[Array, " K"], Float[Array, " K"]]:
@@ -62,13 +74,16 @@ def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
     """Weighted residuals; weighted groups share slots where their members are disjoint."""
     u, v = wheel_frame(p, ev)
     d = jnp.sqrt(u * u + v * v + 1e-12)
-    rim = jnp.sqrt(ev.w_rim) * _welsch(d - p[2], RIM_LOSS_SCALE_PX)
-    line = jnp.sqrt(ev.w_line) * (v - p[3] * u - p[4])
-    end_a = jnp.sqrt(ev.w_a) * (-jnp.sin(p[5]) * u + jnp.cos(p[5]) * v - p[6])
-    end_b = jnp.sqrt(ev.w_b) * (-jnp.sin(p[7]) * u + jnp.cos(p[7]) * v - p[8])
+    rim = _sqrt_weight(ev.w_rim) * _welsch(d - p[2], RIM_LOSS_SCALE_PX)
+    line = _sqrt_weight(ev.w_line) * (v - p[3] * u - p[4])
+    end_a = _sqrt_weight(ev.w_a) * (-jnp.sin(p[5]) * u + jnp.cos(p[5]) * v - p[6])
+    end_b = _sqrt_weight(ev.w_b) * (-jnp.sin(p[7]) * u + jnp.cos(p[7]) * v - p[8])
     prior = jnp.sqrt(PRIOR_WEIGHT) * (p - ev.start)
+    line_angle = jnp.arctan(p[3])
+    lever = jnp.sqrt(END_ANGLE_PRIOR_POINTS) * END_LEVER_PX
+    end_prior = lever * jnp.stack([p[5] - line_angle, p[7] - line_angle])
     # rim and line members are disjoint (outside / inside the rim), so are the two end windows.
-    return jnp.concatenate([rim + line, end_a + end_b, prior])
+    return jnp.concatenate([rim + line, end_a + end_b, prior, end_prior])
 
 
 def end_point(
@@ -96,7 +111,8 @@ def measurements(p: Float[Array, " 9"], wheel_radius_mm: float | None = None) ->
     """
     z0 = sinkage_px(p[3], p[4], p[2])
     if wheel_radius_mm is not None:
-        z0 = z0 * wheel_radius_mm / p[2]
+        # r is ~0 only when no wheel was found (reported as such); keep the value finite.
+        z0 = z0 * wheel_radius_mm / jnp.maximum(p[2], 1.0)
     a = end_point(p[5], p[6], p[2], 1.0)
     b = end_point(p[7], p[8], p[2], -1.0)
     return jnp.stack([z0, entry_angle_rad(a[0], a[1]), exit_angle_rad(b[0], b[1])])

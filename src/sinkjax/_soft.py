@@ -23,7 +23,7 @@ from ._model import end_point, measurements
 from ._outline import extract_outline, refine_outline
 from ._rig import Rig, SegmentationParams
 from ._segmentation import wheel_mask
-from ._uncertainty import covariance, measurement_std
+from ._uncertainty import UncertaintyModel, covariance, measurement_std
 
 STATUS_CODES = (R.OK, R.NO_CONTACT, R.NO_WHEEL, R.FIT_FAILED)
 _OK, _NO_CONTACT, _NO_WHEEL, _FIT_FAILED = range(4)
@@ -58,8 +58,14 @@ def measure(
     rect: tuple[int, int, int, int],
     travel: str = "right",
     wheel_radius_mm: float = 1.0,
+    uncertainty: UncertaintyModel | None = None,
 ) -> SoftEstimate:
-    """The soft method on one image in [0, 1]. ``rect``, ``travel`` and the radius are static."""
+    """The soft method on one image in [0, 1]. Keyword arguments are static.
+
+    ``image`` is (H, W, 3) RGB in [0, 1]; ``rect`` the confidence rectangle (x, y, w, h) in px;
+    ``wheel_radius_mm`` the rim's physical radius R (sinkage is reported as z0 * R / r).
+    Never raises for image content: problems are reported in ``status``.
+    """
     height, width = image.shape[:2]
     mask = wheel_mask(image, seg, rect)
     outline = refine_outline(image, extract_outline(mask))
@@ -70,7 +76,7 @@ def measure(
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
-    std = measurement_std(p, cov, wheel_radius_mm)
+    std = measurement_std(p, cov, wheel_radius_mm, uncertainty)
     contact = jnp.sum(ev.w_line) >= MIN_BOUNDARY_POINTS
     status = jnp.where(
         circle.support < MIN_RIM_SUPPORT,
@@ -94,17 +100,28 @@ def measure(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm"))
+@functools.partial(
+    jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty")
+)
 def _measure_batch(
     images_u8: Array,
     seg: SegmentationParams,
     rect: tuple[int, int, int, int],
     travel: str,
     wheel_radius_mm: float,
+    uncertainty: UncertaintyModel | None = None,
 ) -> SoftEstimate:
-    images = images_u8.astype(jnp.float32) / 255.0
-    one = functools.partial(measure, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
-    return jax.vmap(one, in_axes=(0, None))(images, seg)
+    # The default float: float32, or float64 when jax_enable_x64 is on (one dtype throughout,
+    # which the solver requires).
+    images = images_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
+    one = functools.partial(
+        measure, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm,
+        uncertainty=uncertainty,
+    )
+    # On a CPU, vmap would run the Levenberg-Marquardt loop of all frames in lockstep until the
+    # slowest converges; lax.map compiles once and runs frame after frame. (measure itself is
+    # vmap-able: use jax.vmap on an accelerator.)
+    return jax.lax.map(lambda im: one(im, seg), images)
 
 
 def _rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> str | None:
@@ -118,7 +135,12 @@ def _rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> s
 
 
 def estimate_batch(
-    images: list[np.ndarray], rig: Rig, names: list[str], *, pad_to: int | None = None
+    images: list[np.ndarray],
+    rig: Rig,
+    names: list[str],
+    *,
+    pad_to: int | None = None,
+    uncertainty: UncertaintyModel | None = None,
 ) -> list[R.FrameResult]:
     """Soft estimates for frames of one size (uint8 RGB (H, W, 3) each), one row per frame.
 
@@ -141,7 +163,7 @@ def estimate_batch(
     batch = np.stack(images + [images[0]] * (size - n))
     out = _measure_batch(
         jnp.asarray(batch), rig.segmentation, rig.confidence_rect, rig.travel,
-        float(rig.wheel_radius_mm),
+        float(rig.wheel_radius_mm), uncertainty,
     )
     out = jax.tree_util.tree_map(np.asarray, out)
     return [_row(out, i, names[i], rig) for i in range(n)]

@@ -1,0 +1,116 @@
+"""Colour and segmentation stages against independent references (math.acos, the classic
+pipeline's NumPy code), with the limits and gradients the soft method relies on."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sinkjax._classic import hard_mask, rgb_to_hsi_np
+from sinkjax._colour import circular_mean_deg, rgb_to_hsi
+from sinkjax._rig import SegmentationParams
+from sinkjax._segmentation import confidence_means, smooth, soft_mask, soft_open
+
+
+def textbook_hsi(r: float, g: float, b: float) -> tuple[float, float, float]:
+    """Gonzalez & Woods' HSI with math.acos, one pixel at a time (the paper's definition)."""
+    num = 0.5 * ((r - g) + (r - b))
+    den = math.sqrt((r - g) ** 2 + (r - b) * (g - b))
+    h = 0.0 if den == 0 else math.degrees(math.acos(max(-1.0, min(1.0, num / den))))
+    if b > g:
+        h = 360.0 - h
+    total = r + g + b
+    s = 0.0 if total == 0 else 1.0 - 3.0 * min(r, g, b) / total
+    return h, s, total / 3.0
+
+
+def test_hsi_matches_textbook_and_classic() -> None:
+    rng = np.random.default_rng(0)
+    px = rng.uniform(size=(400, 3))
+    h, s, i = (np.asarray(a) for a in rgb_to_hsi(jnp.asarray(px)))
+    ref = np.array([textbook_hsi(*p) for p in px])
+    np.testing.assert_allclose(h, ref[:, 0], atol=1e-7)
+    np.testing.assert_allclose(s, ref[:, 1], atol=1e-10)
+    np.testing.assert_allclose(i, ref[:, 2], atol=1e-12)
+    hc, sc, ic = rgb_to_hsi_np(px.reshape(20, 20, 3))
+    np.testing.assert_allclose(h / 360.0, hc.ravel() / 360.0, atol=1e-5)
+    np.testing.assert_allclose(s, sc.ravel(), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("rgb", "hue"),
+    [((1, 0, 0), 0), ((1, 1, 0), 60), ((0, 1, 0), 120), ((0, 1, 1), 180), ((0, 0, 1), 240)],
+)
+def test_primary_hues(rgb: tuple[int, int, int], hue: float) -> None:
+    h, s, _ = rgb_to_hsi(jnp.asarray(rgb, dtype=float))
+    assert float(h) == pytest.approx(hue, abs=1e-9)
+    assert float(s) == pytest.approx(1.0)
+
+
+def test_hsi_gradients_finite_at_grey_black_and_wrap() -> None:
+    px = jnp.asarray(
+        [[0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [0.8, 0.1, 0.1 + 1e-9], [0.8, 0.1 + 1e-9, 0.1]]
+    )
+    for k in range(3):
+        g = jax.jacrev(lambda p, k=k: rgb_to_hsi(p)[k])(px)
+        assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_circular_mean_of_red() -> None:
+    hues = jnp.asarray([350.0, 355.0, 5.0, 10.0])
+    m = float(circular_mean_deg(hues))
+    assert min(m, 360 - m) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_soft_mask_tends_to_classic_mask() -> None:
+    rng = np.random.default_rng(3)
+    img = rng.uniform(size=(40, 50, 3))
+    img[5:20, 5:30] = [0.8, 0.15, 0.12] + rng.normal(0, 0.03, (15, 25, 3))  # a red wheel patch
+    img = np.clip(img, 0, 1)
+    rect = (8, 8, 15, 8)
+    h, s, _ = rgb_to_hsi(jnp.asarray(img))
+    h_w, s_w = confidence_means(h, s, rect)
+    base = SegmentationParams()
+    hc, sc, _ = rgb_to_hsi_np(img)
+    hard = hard_mask(hc, sc, float(h_w), float(s_w), base)
+    assert hard.sum() > 100  # the patch is found, across the 0/360 wrap
+    cold = SegmentationParams(
+        p_d_hue=base.p_d_hue, p_a_hue=base.p_a_hue, p_d_sat=base.p_d_sat, p_a_sat=base.p_a_sat,
+        temperature_hue_deg=1e-6, temperature_sat=1e-8,
+    )
+    soft = np.asarray(soft_mask(h, s, h_w, s_w, cold))
+    np.testing.assert_array_equal(soft > 0.5, hard)
+    assert np.all((soft < 1e-6) | (soft > 1 - 1e-6))
+
+
+def test_soft_mask_gradients_finite() -> None:
+    rng = np.random.default_rng(4)
+    img = jnp.asarray(rng.uniform(size=(12, 12, 3)))
+
+    def total(seg: SegmentationParams) -> jnp.ndarray:
+        h, s, _ = rgb_to_hsi(img)
+        h_w, s_w = confidence_means(h, s, (2, 2, 4, 4))
+        return jnp.sum(soft_mask(h, s, h_w, s_w, seg))
+
+    g = jax.grad(total)(SegmentationParams())
+    assert all(np.isfinite(float(v)) for v in jax.tree_util.tree_leaves(g))
+    assert abs(float(g.p_a_sat)) > 0
+
+
+def test_confidence_rect_off_image_raises() -> None:
+    z = jnp.zeros((10, 10))
+    with pytest.raises(ValueError, match="off the 10x10 image"):
+        confidence_means(z, z, (5, 5, 10, 2))
+
+
+def test_smoothing_and_opening() -> None:
+    m = jnp.ones((9, 9)) * 0.7
+    np.testing.assert_allclose(np.asarray(smooth(m)), 0.7, atol=1e-12)
+    spur = jnp.zeros((9, 9)).at[4, :].set(1.0).at[0:3, 0:3].set(1.0)
+    opened = np.asarray(soft_open(spur, 1))
+    assert opened[4].max() == 0.0  # a one-pixel line is removed
+    assert opened[1, 1] == 1.0  # a 3x3 block survives
