@@ -40,8 +40,12 @@ class Frame:
 
 
 def make_frames(
-    seed: int, n_recordings: int, frames_per: int, presets: tuple[str, ...] = ("full",),
-    sizes: tuple[tuple[int, int], ...] = SIZES, progress: bool = True,
+    seed: int,
+    n_recordings: int,
+    frames_per: int,
+    presets: tuple[str, ...] = ("full",),
+    sizes: tuple[tuple[int, int], ...] = SIZES,
+    progress: bool = True,
 ) -> list[Frame]:
     """Seeded synthetic frames grouped in recordings (one rig each)."""
     rng = np.random.default_rng(seed)
@@ -60,7 +64,9 @@ def make_frames(
     return frames
 
 
-def run_soft(frames: list[Frame], batch: int = 8, progress: bool = True) -> tuple[list[FrameResult], float]:
+def run_soft(
+    frames: list[Frame], batch: int = 8, progress: bool = True
+) -> tuple[list[FrameResult], float]:
     """Soft results in frame order, and the steady-state seconds per frame (compile excluded)."""
     out: list[FrameResult] = []
     timed = 0.0
@@ -75,10 +81,14 @@ def run_soft(frames: list[Frame], batch: int = 8, progress: bool = True) -> tupl
             chunk = group[i : i + batch]
             key = (chunk[0].image.shape, chunk[0].rig.confidence_rect, chunk[0].rig.travel)
             if key not in seen:  # compile outside the timing
-                estimate_batch([f.image for f in chunk], chunk[0].rig, [f.name for f in chunk], pad_to=batch)
+                estimate_batch(
+                    [f.image for f in chunk], chunk[0].rig, [f.name for f in chunk], pad_to=batch
+                )
                 seen.add(key)
             t0 = time.perf_counter()
-            out += estimate_batch([f.image for f in chunk], chunk[0].rig, [f.name for f in chunk], pad_to=batch)
+            out += estimate_batch(
+                [f.image for f in chunk], chunk[0].rig, [f.name for f in chunk], pad_to=batch
+            )
             timed += time.perf_counter() - t0
             n_timed += len(chunk)
             bar.update(len(chunk))
@@ -156,8 +166,10 @@ ROWS = (
 def table(soft: dict, classic: dict, soft_s: float, classic_s: float) -> str:
     lines = ["| quantity | soft | classic | target (soft) |", "|---|---|---|---|"]
     for label, key, target in ROWS:
+
         def fmt(v: float) -> str:
             return "—" if v != v else f"{v:.2f}"
+
         lines.append(f"| {label} | {fmt(soft[key])} | {fmt(classic[key])} | {target} |")
     lines.append(
         f"| time per frame, steady state (ms) | {1000 * soft_s:.1f} | {1000 * classic_s:.1f} | "
@@ -166,19 +178,53 @@ def table(soft: dict, classic: dict, soft_s: float, classic_s: float) -> str:
     return "\n".join(lines)
 
 
-def write_csv(path: Path, frames: list[Frame], soft: list[FrameResult], classic: list[FrameResult]) -> None:
+def write_csv(
+    path: Path, frames: list[Frame], soft: list[FrameResult], classic: list[FrameResult]
+) -> None:
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["frame", "terrain", "true_sinkage_mm", "true_theta1_deg", "true_theta2_deg",
-                    "soft_status", "soft_sinkage_mm", "soft_sinkage_std_mm", "soft_theta1_deg",
-                    "soft_theta1_std_deg", "soft_theta2_deg", "soft_theta2_std_deg",
-                    "classic_status", "classic_sinkage_mm", "classic_theta1_deg", "classic_theta2_deg"])
+        w.writerow(
+            [
+                "frame",
+                "terrain",
+                "true_sinkage_mm",
+                "true_theta1_deg",
+                "true_theta2_deg",
+                "soft_status",
+                "soft_sinkage_mm",
+                "soft_sinkage_std_mm",
+                "soft_theta1_deg",
+                "soft_theta1_std_deg",
+                "soft_theta2_deg",
+                "soft_theta2_std_deg",
+                "classic_status",
+                "classic_sinkage_mm",
+                "classic_theta1_deg",
+                "classic_theta2_deg",
+            ]
+        )
         for f, s, c in zip(frames, soft, classic, strict=True):
             t = f.truth
-            w.writerow([f.name, t.terrain, t.sinkage_mm, t.theta1_deg, t.theta2_deg,
-                        s.status, s.sinkage_mm, s.sinkage_std_mm, s.theta1_deg, s.theta1_std_deg,
-                        s.theta2_deg, s.theta2_std_deg, c.status, c.sinkage_mm, c.theta1_deg,
-                        c.theta2_deg])
+            w.writerow(
+                [
+                    f.name,
+                    t.terrain,
+                    t.sinkage_mm,
+                    t.theta1_deg,
+                    t.theta2_deg,
+                    s.status,
+                    s.sinkage_mm,
+                    s.sinkage_std_mm,
+                    s.theta1_deg,
+                    s.theta1_std_deg,
+                    s.theta2_deg,
+                    s.theta2_std_deg,
+                    c.status,
+                    c.sinkage_mm,
+                    c.theta1_deg,
+                    c.theta2_deg,
+                ]
+            )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -47,8 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     for group in recs.values():
         for i in range(0, len(group), 8):
             chunk = group[i : i + 8]
-            res = estimate_batch([f.image for f in chunk], chunk[0].rig, [f.name for f in chunk],
-                                 pad_to=8, uncertainty=UncertaintyModel.raw())
+            res = estimate_batch(
+                [f.image for f in chunk],
+                chunk[0].rig,
+                [f.name for f in chunk],
+                pad_to=8,
+                uncertainty=UncertaintyModel.raw(),
+            )
             rows += list(zip(chunk, res, strict=True))
     z_err, z_raw, a_err, a_raw = [], [], [], []
     for f, r in rows:
@@ -70,8 +75,10 @@ def main(argv: list[str] | None = None) -> int:
     zs = np.sqrt((sa * zr) ** 2 + sf**2)
     as_ = np.sqrt((aa * ar) ** 2 + af**2)
     print(f"{len(ze)} frames in contact")
-    print(f"sinkage: scale {sa:.2f}, floor {sf:.3f} px -> coverage {100 * np.mean(np.abs(ze) <= 1.96 * zs):.1f}%")
-    print(f"angles:  scale {aa:.2f}, floor {af:.3f} deg -> coverage {100 * np.mean(np.abs(ae) <= 1.96 * as_):.1f}%")
+    cz = 100 * np.mean(np.abs(ze) <= 1.96 * zs)
+    ca = 100 * np.mean(np.abs(ae) <= 1.96 * as_)
+    print(f"sinkage: scale {sa:.2f}, floor {sf:.3f} px -> coverage {cz:.1f}%")
+    print(f"angles:  scale {aa:.2f}, floor {af:.3f} deg -> coverage {ca:.1f}%")
     print(model)
     return 0
 

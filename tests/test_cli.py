@@ -187,12 +187,12 @@ def test_nothing_readable_exit_2_but_rows_written(tmp_path, monkeypatch, fake, c
 def test_bad_rect_frame_status_and_all_bad_rect(tmp_path, monkeypatch, fake, capsys):
     monkeypatch.chdir(tmp_path)
     png(tmp_path / "big.png", size=(40, 40))
-    png(tmp_path / "small.png", size=(10, 10))
+    png(tmp_path / "small.png", size=(20, 20))
     flags = ["--wheel-radius-mm", "100", "--confidence-rect", "5,5,20,20"]
     assert main(["estimate", "big.png", "small.png", *flags]) == 0
     _, out = rows(tmp_path / "results.csv")
     assert [r["status"] for r in out] == ["ok", "bad_rect"]
-    assert "10x10" in out[1]["message"] and out[1]["sinkage_mm"] == ""
+    assert "20x20" in out[1]["message"] and out[1]["sinkage_mm"] == ""
     assert main(["estimate", "small.png", *flags]) == 2
     assert "confidence rectangle" in capsys.readouterr().err
 
@@ -219,7 +219,7 @@ def test_soft_unavailable_is_clear(tmp_path, monkeypatch, capsys):
 
 
 def test_subcommand_registry_and_usage(capsys):
-    assert {"estimate", "synth", "demo"} <= set(COMMANDS)
+    assert {"estimate", "synth", "demo", "smooth", "plot"} <= set(COMMANDS)
     with pytest.raises(SystemExit) as e:
         main([])
     assert e.value.code == 2

@@ -36,7 +36,7 @@ def test_hsi_matches_textbook_and_classic() -> None:
     np.testing.assert_allclose(h, ref[:, 0], atol=1e-7)
     np.testing.assert_allclose(s, ref[:, 1], atol=1e-10)
     np.testing.assert_allclose(i, ref[:, 2], atol=1e-12)
-    hc, sc, ic = rgb_to_hsi_np(px.reshape(20, 20, 3))
+    hc, sc, _ = rgb_to_hsi_np(px.reshape(20, 20, 3))
     np.testing.assert_allclose(h / 360.0, hc.ravel() / 360.0, atol=1e-5)
     np.testing.assert_allclose(s, sc.ravel(), atol=1e-5)
 
@@ -69,7 +69,9 @@ def test_circular_mean_of_red() -> None:
 def test_soft_mask_tends_to_classic_mask() -> None:
     rng = np.random.default_rng(3)
     img = rng.uniform(size=(40, 50, 3))
-    img[5:20, 5:30] = [0.8, 0.15, 0.12] + rng.normal(0, 0.03, (15, 25, 3))  # a red wheel patch
+    img[5:20, 5:30] = np.array([0.8, 0.15, 0.12]) + rng.normal(
+        0, 0.03, (15, 25, 3)
+    )  # a red wheel patch
     img = np.clip(img, 0, 1)
     rect = (8, 8, 15, 8)
     h, s, _ = rgb_to_hsi(jnp.asarray(img))
@@ -79,8 +81,12 @@ def test_soft_mask_tends_to_classic_mask() -> None:
     hard = hard_mask(hc, sc, float(h_w), float(s_w), base)
     assert hard.sum() > 100  # the patch is found, across the 0/360 wrap
     cold = SegmentationParams(
-        p_d_hue=base.p_d_hue, p_a_hue=base.p_a_hue, p_d_sat=base.p_d_sat, p_a_sat=base.p_a_sat,
-        temperature_hue_deg=1e-6, temperature_sat=1e-8,
+        p_d_hue=base.p_d_hue,
+        p_a_hue=base.p_a_hue,
+        p_d_sat=base.p_d_sat,
+        p_a_sat=base.p_a_sat,
+        temperature_hue_deg=1e-6,
+        temperature_sat=1e-8,
     )
     soft = np.asarray(soft_mask(h, s, h_w, s_w, cold))
     np.testing.assert_array_equal(soft > 0.5, hard)

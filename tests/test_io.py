@@ -297,7 +297,7 @@ def _frames(*specs) -> list[Frame]:
 
 def test_stream_keeps_order_and_batches_by_size():
     fake = FakeMethod()
-    frames = _frames((10, 10, 1), None, (10, 10, 2), (12, 10, 3), (12, 10, 4), (10, 10, 5))
+    frames = _frames((20, 20, 1), None, (20, 20, 2), (24, 20, 3), (24, 20, 4), (20, 20, 5))
     results = list(estimate_stream(frames, RIG, method=fake, batch_size=8))
     assert [r.image for r in results] == [f"f{i}" for i in range(6)]
     assert [r.status for r in results] == ["ok", "unreadable", "ok", "ok", "ok", "ok"]
@@ -307,29 +307,30 @@ def test_stream_keeps_order_and_batches_by_size():
 
 def test_batch_size_limits_batches():
     fake = FakeMethod()
-    list(estimate_stream(_frames(*[(8, 8, 0)] * 5), RIG, method=fake, batch_size=2))
+    list(estimate_stream(_frames(*[(16, 16, 0)] * 5), RIG, method=fake, batch_size=2))
     assert fake.batches == [["f0", "f1"], ["f2", "f3"], ["f4"]]
 
 
 def test_failing_frame_retried_alone_and_isolated():
     fake = FakeMethod()
-    results = list(estimate_stream(_frames((8, 8, 1), (8, 8, 13), (8, 8, 2)), RIG, method=fake))
+    frames = _frames((16, 16, 1), (16, 16, 13), (16, 16, 2))
+    results = list(estimate_stream(frames, RIG, method=fake))
     assert [r.status for r in results] == ["ok", "error", "ok"]
     assert results[1].message == "RuntimeError: boom"
     assert fake.batches == [["f0", "f1", "f2"], ["f0"], ["f1"], ["f2"]]
 
 
 def test_wrong_result_count_is_error():
-    results = list(estimate_stream(_frames((8, 8, 1)), RIG, method=lambda ims, rig, names: []))
+    results = list(estimate_stream(_frames((16, 16, 1)), RIG, method=lambda ims, rig, names: []))
     assert results[0].status == "error" and "0 results for 1 frames" in results[0].message
 
 
 def test_bad_rect_frames_skip_the_method():
     fake = FakeMethod()
-    rig = Rig(wheel_radius_mm=1.0, confidence_rect=(0, 0, 9, 9))
-    pairs = list(iter_estimates(_frames((10, 10, 1), (8, 8, 2), (10, 10, 3)), rig, method=fake))
+    rig = Rig(wheel_radius_mm=1.0, confidence_rect=(0, 0, 17, 17))
+    pairs = list(iter_estimates(_frames((18, 18, 1), (16, 16, 2), (18, 18, 3)), rig, method=fake))
     assert [r.status for _, r in pairs] == ["ok", "bad_rect", "ok"]
-    assert "8x8" in pairs[1][1].message
+    assert "16x16" in pairs[1][1].message
     assert fake.batches == [["f0", "f2"]]
     assert pairs[1][0].image is not None  # the frame itself still travels (for its overlay)
 
@@ -422,7 +423,7 @@ def test_plot_accuracy_and_matching(tmp_path, monkeypatch):
 
 def test_failed_rows_do_not_pile_up_behind_a_batch():
     fake = FakeMethod()
-    frames = _frames((8, 8, 1), *[None] * 40, (8, 8, 2))
+    frames = _frames((16, 16, 1), *[None] * 40, (16, 16, 2))
     pairs = iter_estimates(iter(frames), RIG, method=fake, batch_size=2)
     seen = [result.image for _, result in pairs]
     assert seen == [f"f{i}" for i in range(42)]

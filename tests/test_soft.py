@@ -20,7 +20,7 @@ from sinkjax._uncertainty import UncertaintyModel, covariance, measurement_std
 W, H = 320, 240
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def frames(preset: str, n: int = 4, seed: int = 11) -> tuple[list[np.ndarray], list[S.Truth], Rig]:
     rng = np.random.default_rng(seed)
     scenes = S.recording_scenes(rng, n, preset=preset, width=W, height=H)
@@ -38,7 +38,9 @@ def run(image: np.ndarray, rig: Rig, seg: SegmentationParams | None = None):
     )
 
 
-_jit_measure = jax.jit(measure, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty"))
+_jit_measure = jax.jit(
+    measure, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty")
+)
 
 
 @pytest.mark.parametrize("preset", ["clean", "full"])
@@ -126,8 +128,12 @@ def test_degenerate_frames_have_status_and_finite_gradients(case: str) -> None:
     image, rig = degenerate_images()[case]
     est = run(image, rig)
     status = STATUS_CODES[int(est.status)]
-    assert status in {"all_wheel": ("no_wheel",), "all_soil": ("no_wheel",),
-                      "no_contact": ("no_contact",)}[case]
+    assert (
+        status
+        in {"all_wheel": ("no_wheel",), "all_soil": ("no_wheel",), "no_contact": ("no_contact",)}[
+            case
+        ]
+    )
     kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
     img = jnp.asarray(image, jnp.float64) / 255.0
 
@@ -171,17 +177,22 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
     eps = 1e-6
     g = np.stack(
         [
-            (np.asarray(measurements(res.params + eps * e)) - np.asarray(measurements(res.params - eps * e)))
+            (
+                np.asarray(measurements(res.params + eps * e))
+                - np.asarray(measurements(res.params - eps * e))
+            )
             / (2 * eps)
             for e in np.eye(9)
         ],
         1,
     )
-    np.testing.assert_allclose(std, np.sqrt(np.einsum("ij,jk,ik->i", g, np.asarray(cov), g)), rtol=1e-5)
+    np.testing.assert_allclose(
+        std, np.sqrt(np.einsum("ij,jk,ik->i", g, np.asarray(cov), g)), rtol=1e-5
+    )
 
 
 def test_bad_rect_rows() -> None:
-    images, _, rig = frames("clean", n=1)
+    images, _, _ = frames("clean", n=1)
     bad = Rig(wheel_radius_mm=140.0, confidence_rect=(W - 5, 10, 20, 20))
     rows = estimate_batch(images, bad, ["a"])
     assert rows[0].status == "bad_rect" and "off the" in rows[0].message

@@ -14,9 +14,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import ModuleType
 
-from ._io import InputError, expand_paths, parse_rect, resolve_rig
-from ._pipeline import MethodUnavailable, estimate_to_csv, load_method
+from ._io import FrameSelection, InputError, expand_paths, parse_rect, resolve_rig
+from ._pipeline import MethodUnavailable, ResumeError, estimate_to_csv, load_method
 from ._rig import RigError
+from ._smoothing import SmoothingOptions
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -75,11 +76,13 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="frames measured together (soft method only; default: 8)",
     )
+    _add_long_run_options(p)
 
 
 def _run_estimate(args: argparse.Namespace) -> int:
     if args.batch_size < 1:
         raise UsageError(f"--batch-size must be at least 1, got {args.batch_size}")
+    select, smoothing = _long_run_options(args)
     rect = parse_rect(args.confidence_rect) if args.confidence_rect is not None else None
     inputs = expand_paths(args.paths)
     rig = resolve_rig(
@@ -101,11 +104,25 @@ def _run_estimate(args: argparse.Namespace) -> int:
             method=args.method,
             batch_size=args.batch_size,
             overlay_dir=args.overlay,
+            overlay_video=args.overlay_video,
+            select=select,
+            resume=args.resume,
+            smoothing=smoothing,
             progress=True,
         )
+    except ResumeError as e:
+        raise UsageError(str(e)) from e
     except OSError as e:
         raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e
     print(summary.line())
+    if summary.n_frames == 0:
+        if summary.n_resumed:
+            print(f"nothing left to measure: {args.out} already has every selected frame")
+            return EXIT_OK
+        raise UsageError(
+            f"no frames selected (--start {select.start}, --stop {select.stop}, --stride "
+            f"{select.stride}); the videos are shorter than --start, or there are fewer images"
+        )
     if summary.n_read == 0:
         raise UsageError(
             f"none of the {summary.n_frames} input frame(s) could be read (see the message "
@@ -198,6 +215,162 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# long runs: frame selection, resume, overlay video, smoothing (estimate); smooth; plot
+
+
+def _add_smoothing_options(p: argparse.ArgumentParser) -> None:
+    from . import _smoothing as S
+
+    g = p.add_argument_group(
+        "smoothing (random walk per quantity, Kalman filter + RTS smoother over the frames)"
+    )
+    g.add_argument(
+        "--process-std-mm",
+        type=float,
+        default=S.PROCESS_STD_MM,
+        metavar="MM",
+        help=f"how far sinkage may drift per frame, one sigma (default: {S.PROCESS_STD_MM})",
+    )
+    g.add_argument(
+        "--process-std-deg",
+        type=float,
+        default=S.PROCESS_STD_DEG,
+        metavar="DEG",
+        help=f"how far θ1, θ2 may drift per frame, one sigma (default: {S.PROCESS_STD_DEG})",
+    )
+    g.add_argument(
+        "--measurement-std-mm",
+        type=float,
+        default=S.MEASUREMENT_STD_MM,
+        metavar="MM",
+        help="sinkage sigma for rows that have none, e.g. the classic method's "
+        f"(default: {S.MEASUREMENT_STD_MM})",
+    )
+    g.add_argument(
+        "--measurement-std-deg",
+        type=float,
+        default=S.MEASUREMENT_STD_DEG,
+        metavar="DEG",
+        help=f"angle sigma for rows that have none (default: {S.MEASUREMENT_STD_DEG})",
+    )
+
+
+def _smoothing_options(args: argparse.Namespace) -> SmoothingOptions:
+    try:
+        return SmoothingOptions(
+            process_std_mm=args.process_std_mm,
+            process_std_deg=args.process_std_deg,
+            measurement_std_mm=args.measurement_std_mm,
+            measurement_std_deg=args.measurement_std_deg,
+        )
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+
+
+def _add_long_run_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "long recordings (frame indices count within each video, and over all image files "
+        "of the run together, in input order)"
+    )
+    g.add_argument("--start", type=int, default=0, metavar="N", help="first frame index (0)")
+    g.add_argument("--stop", type=int, metavar="N", help="stop before this frame index (end)")
+    g.add_argument(
+        "--stride", type=int, default=1, metavar="K", help="measure every K-th frame (1)"
+    )
+    g.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the rows already in --out and measure only the frames it lacks (by image "
+        "name), appending to it; a fresh run if --out does not exist",
+    )
+    g.add_argument(
+        "--overlay-video",
+        metavar="OUT.mp4",
+        help="also write an annotated video (mp4v), one video frame per row",
+    )
+    g.add_argument(
+        "--smooth",
+        action="store_true",
+        help="when the run completes, add smoothed columns (sinkage_smooth_mm, ...) after the "
+        "12 standard ones; see 'sinkjax smooth -h'",
+    )
+    _add_smoothing_options(p)
+
+
+def _long_run_options(
+    args: argparse.Namespace,
+) -> tuple[FrameSelection, SmoothingOptions | None]:
+    try:
+        select = FrameSelection(start=args.start, stop=args.stop, stride=args.stride)
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+    if args.overlay_video is not None and not args.overlay_video.lower().endswith(
+        (".mp4", ".m4v", ".mov")
+    ):
+        raise UsageError(f"--overlay-video must name an .mp4 file, got {args.overlay_video!r}")
+    return select, _smoothing_options(args) if args.smooth else None
+
+
+def _add_smooth(p: argparse.ArgumentParser) -> None:
+    from ._smoothing import SMOOTH_COLUMNS
+
+    p.description = (
+        "Add smoothed sinkage, θ1 and θ2 with their one-sigma after the 12 standard columns "
+        f"({', '.join(SMOOTH_COLUMNS)}). Each quantity is a random walk over the frame index "
+        "(a video's frame number; row order for images), seen through each frame's own sigma; "
+        "a Kalman filter and Rauch-Tung-Striebel smoother combine all frames and bridge the "
+        "failed ones. 'sinkjax estimate --smooth' does the same when a run completes."
+    )
+    p.add_argument("results", metavar="RESULTS.csv", help="a results CSV from 'sinkjax estimate'")
+    p.add_argument(
+        "--out", metavar="CSV", help="where to write (default: add the columns to RESULTS.csv)"
+    )
+    _add_smoothing_options(p)
+
+
+def _run_smooth(args: argparse.Namespace) -> int:
+    from ._smoothing import NotAResultsCsv, smooth_csv
+
+    options = _smoothing_options(args)
+    try:
+        out = smooth_csv(args.results, args.out, options)
+    except NotAResultsCsv as e:
+        raise UsageError(str(e)) from e
+    except OSError as e:
+        raise UsageError(f"cannot use {e.filename or args.results}: {e.strerror or e}") from e
+    print(f"smoothed sinkage, θ1 and θ2 -> {out}")
+    return EXIT_OK
+
+
+def _add_plot(p: argparse.ArgumentParser) -> None:
+    p.add_argument("results", metavar="RESULTS.csv", help="a results CSV from 'sinkjax estimate'")
+    p.add_argument("--out", metavar="PNG", help="image to write (default: RESULTS.png)")
+    p.add_argument(
+        "--smoothed",
+        action="store_true",
+        help="also draw the smoothed series (its columns, or smoothed here with the options)",
+    )
+    _add_smoothing_options(p)
+
+
+def _run_plot(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ._plots import plot_series
+
+    options = _smoothing_options(args)
+    out = args.out or str(Path(args.results).with_suffix(".png"))
+    try:
+        written = plot_series(args.results, out, smoothed=args.smoothed, options=options)
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+    except OSError as e:
+        raise UsageError(f"cannot use {e.filename or args.results}: {e.strerror or e}") from e
+    print(f"plot -> {written}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------------------
 # registry and entry point
 
 COMMANDS: dict[str, Command] = {
@@ -205,8 +378,15 @@ COMMANDS: dict[str, Command] = {
         "measure sinkage and angles in images or videos", _add_estimate, _run_estimate
     ),
     "synth": Command("write a synthetic recording with ground truth", _add_synth, _run_synth),
+    # calibrate lives in _calibration (parse + run); imported when the parser is built.
+    "calibrate": Command(
+        "tune the segmentation thresholds to a few labelled frames; writes a rig file",
+        lambda p: __import__("sinkjax._calibration", fromlist=["_"]).add_cli_arguments(p),
+        lambda a: __import__("sinkjax._calibration", fromlist=["_"]).run_cli(a),
+    ),
     "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
-    # "calibrate" and "plot" are added here as further entries.
+    "smooth": Command("add Kalman/RTS-smoothed columns to a results CSV", _add_smooth, _run_smooth),
+    "plot": Command("plot sinkage and angles over the frames", _add_plot, _run_plot),
 }
 
 
@@ -255,7 +435,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"sinkjax {args.command}: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        kept = f"; the rows finished so far are in {args.out}" if args.command == "estimate" else ""
+        kept = ""
+        if args.command == "estimate":
+            kept = f"; the rows finished so far are in {args.out} (finish with --resume)"
         print(f"sinkjax {args.command}: interrupted{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
 

@@ -121,10 +121,10 @@ def fit(ev: Evidence, *, max_steps: int = 64) -> FitResult:
     # Tolerances on the step and the objective: 1e-4 is far below anything measurable (0.02 px on
     # a 150 px offset, 0.006 deg on an angle), while tighter ones sit at float32 rounding noise of
     # a sum over thousands of residuals and make convergence a coin toss.
-    solver = optx.LevenbergMarquardt(
+    solver: optx.LevenbergMarquardt = optx.LevenbergMarquardt(
         rtol=1e-4, atol=1e-4, linear_solver=lx.Normal(lx.Cholesky())
     )
-    sol = optx.least_squares(
+    sol: optx.Solution = optx.least_squares(
         residuals, solver, ev.start, args=ev, max_steps=max_steps, throw=False
     )
     p = sol.value

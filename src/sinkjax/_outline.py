@@ -58,12 +58,20 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     m = smooth(mask)
     # Sobel derivatives, normalised so a unit step blurred over n pixels has slope ~1/n.
     gx = (
-        _shift(m, -1, 1) + 2 * _shift(m, 0, 1) + _shift(m, 1, 1)
-        - _shift(m, -1, -1) - 2 * _shift(m, 0, -1) - _shift(m, 1, -1)
+        _shift(m, -1, 1)
+        + 2 * _shift(m, 0, 1)
+        + _shift(m, 1, 1)
+        - _shift(m, -1, -1)
+        - 2 * _shift(m, 0, -1)
+        - _shift(m, 1, -1)
     ) / 8.0
     gy = (
-        _shift(m, 1, -1) + 2 * _shift(m, 1, 0) + _shift(m, 1, 1)
-        - _shift(m, -1, -1) - 2 * _shift(m, -1, 0) - _shift(m, -1, 1)
+        _shift(m, 1, -1)
+        + 2 * _shift(m, 1, 0)
+        + _shift(m, 1, 1)
+        - _shift(m, -1, -1)
+        - 2 * _shift(m, -1, 0)
+        - _shift(m, -1, 1)
     ) / 8.0
     mag2 = gx * gx + gy * gy
     mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0)
@@ -154,16 +162,20 @@ def refine_outline(image: Float[Array, "H W 3"], outline: Outline) -> Outline:
         ],
         -1,
     )
-    ycc = jnp.asarray(_YCC, image.dtype) * jnp.asarray([1.0, CHROMA_WEIGHT, CHROMA_WEIGHT], image.dtype)[:, None]
+    ycc = (
+        jnp.asarray(_YCC, image.dtype)
+        * jnp.asarray([1.0, CHROMA_WEIGHT, CHROMA_WEIGHT], image.dtype)[:, None]
+    )
     samples = samples @ ycc.T
     c_in = jnp.mean(samples[:, :3], axis=1)
     c_out = jnp.mean(samples[:, -3:], axis=1)
     diff = c_in - c_out
     contrast2 = jnp.sum(diff * diff, -1)
     ok = contrast2 > 0.02**2
-    proj = jnp.einsum("ktc,kc->kt", samples - c_out[:, None], diff) / jnp.where(ok, contrast2, 1.0)[
-        :, None
-    ]
+    proj = (
+        jnp.einsum("ktc,kc->kt", samples - c_out[:, None], diff)
+        / jnp.where(ok, contrast2, 1.0)[:, None]
+    )
     # Trapezoid integral of the profile from the window's start: the edge's offset from -half.
     t_edge = -half + step * (jnp.sum(proj, 1) - 0.5 * (proj[:, 0] + proj[:, -1]))
     shift = jnp.where(ok, jnp.clip(t_edge, -2.0, 2.0), 0.0)

@@ -1,4 +1,8 @@
-"""Overlays: one frame with its measurement drawn on it (rim, boundary, line, A, B, numbers)."""
+"""Overlays: one frame with its measurement drawn on it (rim, boundary, line, A, B, numbers).
+
+Written as one PNG per frame (:class:`OverlayWriter`) or as one annotated MP4
+(:class:`OverlayVideoWriter`).
+"""
 
 from __future__ import annotations
 
@@ -147,3 +151,69 @@ class OverlayWriter:
         if not cv2.imwrite(str(path), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
             raise OSError(f"could not write overlay {path}")
         return path
+
+
+class OverlayVideoWriter:
+    """Writes the overlays of a run as one MP4 (OpenCV's ``mp4v`` codec), one video frame per row.
+
+    The video takes the size of the first frame that has pixels; frames of another size are
+    resized to it, and frames without pixels (unreadable) become a black frame that states their
+    status, so the video stays in step with the results CSV. Call :meth:`close` at the end.
+    """
+
+    def __init__(self, path: str | Path, rig: Rig | None = None, *, fps: float = 10.0) -> None:
+        self.path = Path(path)
+        if self.path.suffix.lower() not in (".mp4", ".m4v", ".mov"):
+            raise ValueError(f"--overlay-video must name an .mp4 file, got {str(path)!r}")
+        if not (fps > 0):
+            raise ValueError(f"frame rate must be > 0, got {fps}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.fps = float(fps)
+        self.n_written = 0
+        self._rig = rig
+        self._size: tuple[int, int] | None = None  # (width, height)
+        self._writer: cv2.VideoWriter | None = None
+        self._waiting: list[FrameResult] = []  # rows without pixels before the size is known
+        self._broken = False
+
+    def _open(self, width: int, height: int) -> None:
+        # mp4v wants even sizes; an odd frame loses its last row or column.
+        self._size = (max(2, width - width % 2), max(2, height - height % 2))
+        fourcc = cv2.VideoWriter_fourcc(*"mp4v")  # type: ignore[attr-defined]
+        writer = cv2.VideoWriter(str(self.path), fourcc, self.fps, self._size)
+        if not writer.isOpened():
+            self._broken = True
+            raise OSError(f"OpenCV cannot write {self.path} with the mp4v codec")
+        self._writer = writer
+        for result in self._waiting:
+            self._put(None, result)
+        self._waiting.clear()
+
+    def _put(self, image: np.ndarray | None, result: FrameResult) -> None:
+        assert self._writer is not None and self._size is not None
+        width, height = self._size
+        if image is None:
+            drawn = draw_overlay(np.zeros((height, width, 3), np.uint8), result)
+        else:
+            drawn = draw_overlay(image, result, self._rig)
+            if drawn.shape[:2] != (height, width):
+                drawn = cv2.resize(drawn, (width, height), interpolation=cv2.INTER_AREA)
+        self._writer.write(cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
+        self.n_written += 1
+
+    def write(self, image: np.ndarray | None, result: FrameResult) -> None:
+        """Append the overlay of one frame (``image`` None: a black frame with the status)."""
+        if self._broken:
+            return
+        if self._writer is None:
+            if image is None:
+                self._waiting.append(result)
+                return
+            self._open(image.shape[1], image.shape[0])
+        self._put(image, result)
+
+    def close(self) -> None:
+        """Finish the file (a run whose frames all lacked pixels writes no video)."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None

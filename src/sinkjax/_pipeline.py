@@ -1,14 +1,20 @@
-"""Frames -> results: batching, method dispatch, and per-frame failure isolation.
+"""Frames -> results: batching, method dispatch, per-frame failure isolation, resuming.
 
 Every input frame gets exactly one :class:`FrameResult`, in input order, and a method that raises
-spoils only the frames it was working on (status ``error`` with the exception text).
+spoils only the frames it was working on (status ``error`` with the exception text). Rows are
+appended and flushed one by one; ``resume`` skips the frames an earlier run already wrote, so an
+interrupted run, resumed, leaves the same file as one that never stopped.
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import functools
 import importlib
+import inspect
 import logging
+import os
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -19,16 +25,32 @@ import cv2
 import numpy as np
 
 from ._io import (
+    ALL_FRAMES,
     Frame,
+    FrameSelection,
     Inputs,
+    check_image_size,
     check_rect,
     count_frames,
     expand_paths,
+    frame_rate,
     iter_frames,
     resolve_rig,
 )
-from ._results import BAD_RECT, ERROR, NO_CONTACT, OK, FrameResult, ResultsWriter, failed
+from ._overlay import OverlayVideoWriter, OverlayWriter
+from ._results import (
+    BAD_IMAGE,
+    BAD_RECT,
+    COLUMNS,
+    ERROR,
+    NO_CONTACT,
+    OK,
+    FrameResult,
+    ResultsWriter,
+    failed,
+)
 from ._rig import Rig
+from ._smoothing import SMOOTH_COLUMNS, SmoothingOptions, smooth_csv
 
 log = logging.getLogger("sinkjax")
 
@@ -137,10 +159,11 @@ def iter_estimates(
     """Each frame with its result, in input order, exactly one per frame.
 
     Consecutive readable frames of the same size are measured together, up to ``batch_size``
-    at a time (``soft``; ``classic`` runs frame by frame). Frames that could not be read, or
-    whose confidence rectangle lies off the image (``bad_rect``), get their row without
-    reaching the method. ``method`` may also be a batch function ``(images, rig, names) ->
-    results``. Raises ValueError / MethodUnavailable before reading any frame.
+    at a time (``soft``; ``classic`` runs frame by frame). Frames that could not be read, that
+    are smaller than ``MIN_IMAGE_SIDE_PX`` (``bad_image``), or whose confidence rectangle lies
+    off the image (``bad_rect``), get their row without reaching the method. ``method`` may
+    also be a batch function ``(images, rig, names) -> results``. Raises ValueError /
+    MethodUnavailable before reading any frame.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -148,8 +171,23 @@ def iter_estimates(
         return _iter_estimates(frames, rig, method, batch_size, retry=True)
     run = load_method(method)
     if method == "soft":
-        return _iter_estimates(frames, rig, run, batch_size, retry=True)
+        return _iter_estimates(frames, rig, _fixed_shape(run, batch_size), batch_size, retry=True)
     return _iter_estimates(frames, rig, run, 1, retry=False)
+
+
+def _fixed_shape(run: BatchMethod, batch_size: int) -> BatchMethod:
+    """``run`` with every call padded to ``batch_size`` frames, where it can pad.
+
+    A jit-compiled estimator compiles once per batch shape (tens of seconds on a CPU); a short
+    batch (the end of a video, a size change, a retried frame) would otherwise compile anew.
+    """
+    try:
+        pads = "pad_to" in inspect.signature(run).parameters
+    except (TypeError, ValueError):
+        pads = False
+    if not pads:
+        return run
+    return functools.partial(run, pad_to=batch_size)  # type: ignore[call-arg]
 
 
 def _iter_estimates(
@@ -184,10 +222,10 @@ def _iter_estimates(
         ready: FrameResult | None = None
         if frame.image is None:
             ready = failed(frame.name, frame.status or ERROR, frame.message or "no image")
-        else:
-            problem = check_rect(frame.image.shape, rig)
-            if problem is not None:
-                ready = failed(frame.name, BAD_RECT, problem)
+        elif (problem := check_image_size(frame.image.shape)) is not None:
+            ready = failed(frame.name, BAD_IMAGE, problem)
+        elif (problem := check_rect(frame.image.shape, rig)) is not None:
+            ready = failed(frame.name, BAD_RECT, problem)
         if ready is not None:
             if not batch:
                 yield frame, ready
@@ -229,16 +267,19 @@ def estimate_paths(
     *,
     batch_size: int = 8,
     rig_path: str | Path | None = None,
+    select: FrameSelection = ALL_FRAMES,
 ) -> Iterator[FrameResult]:
     """Results for PATH arguments (images, directories, videos), one per frame, in order.
 
-    ``rig`` None: ``rig_path``, else a ``rig.toml`` in the first directory. Raises InputError or
-    RigError (bad arguments) before any frame is measured.
+    ``rig`` None: ``rig_path``, else a ``rig.toml`` in the first directory. ``select``: which
+    frame indices (see :class:`FrameSelection`). Raises InputError or RigError (bad arguments)
+    before any frame is measured.
     """
     inputs = expand_paths(paths)
     if rig is None:
         rig = resolve_rig(inputs, rig_path=rig_path)
-    return estimate_stream(iter_frames(inputs.sources), rig, method=method, batch_size=batch_size)
+    frames = iter_frames(inputs.sources, select=select)
+    return estimate_stream(frames, rig, method=method, batch_size=batch_size)
 
 
 @dataclass
@@ -249,6 +290,8 @@ class RunSummary:
     counts: Counter[str] = field(default_factory=Counter)
     n_read: int = 0
     seconds: float = 0.0
+    n_resumed: int = 0  # rows an earlier run had written (``resume``)
+    smoothed: bool = False
 
     @property
     def n_frames(self) -> int:
@@ -269,7 +312,79 @@ class RunSummary:
         text += "; failed: " + (", ".join(f"{n} {s}" for s, n in failures) if failures else "0")
         if self.seconds > 0 and self.n_frames:
             text += f" ({self.n_frames / self.seconds:.2f} frames/s)"
+        if self.n_resumed:
+            text += f"; {self.n_resumed} rows kept from the earlier run"
+        if self.smoothed:
+            text += "; smoothed columns added"
         return text + (f" -> {self.out}" if self.out is not None else "")
+
+
+class ResumeError(ValueError):
+    """``resume`` was asked for, but the output file is not a results CSV this run can extend."""
+
+
+def _truncate_partial_row(path: Path) -> None:
+    """Cut a row that a killed run left half-written (no final newline); it is measured again."""
+    with open(path, "rb+") as f:
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        if size == 0:
+            return
+        f.seek(size - 1)
+        if f.read(1) == b"\n":
+            return
+        # Rows are short: look back a block at a time for the last newline.
+        end = size
+        while end > 0:
+            start = max(0, end - 65536)
+            f.seek(start)
+            block = f.read(end - start)
+            cut = block.rfind(b"\n")
+            if cut != -1:
+                f.truncate(start + cut + 1)
+                return
+            end = start
+        f.truncate(0)
+
+
+def _strip_columns(path: Path, n_columns: int) -> None:
+    """Rewrite ``path`` keeping its first ``n_columns`` columns (atomically)."""
+    tmp = path.with_name(f".{path.name}.resume.tmp")
+    with (
+        open(path, newline="", encoding="utf-8") as src,
+        open(tmp, "w", newline="", encoding="utf-8") as dst,
+    ):
+        writer = csv.writer(dst, lineterminator="\n")
+        for row in csv.reader(src):
+            writer.writerow(row[:n_columns])
+    os.replace(tmp, path)
+
+
+def prepare_resume(out_csv: str | Path) -> set[str]:
+    """Make ``out_csv`` ready to be appended to; return the image names it already has.
+
+    A missing or empty file is a fresh start (empty set; the caller writes the header). A row
+    left half-written is removed; smoothed columns from an earlier ``smooth`` are dropped (they
+    are recomputed over the whole file). Raises ResumeError for a file with another header.
+    """
+    path = Path(out_csv)
+    if not path.is_file():
+        return set()
+    _truncate_partial_row(path)
+    with open(path, newline="", encoding="utf-8") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            return set()
+        if tuple(header) not in (COLUMNS, (*COLUMNS, *SMOOTH_COLUMNS)):
+            raise ResumeError(
+                f"cannot resume into {path}: it is not a sinkjax results CSV (its header is "
+                f"{','.join(header)[:80]!r}); pass another --out, or drop --resume to overwrite it"
+            )
+        done = {row[0] for row in reader if row}
+    if len(header) != len(COLUMNS):
+        _strip_columns(path, len(COLUMNS))
+    return done
 
 
 def estimate_to_csv(
@@ -280,41 +395,90 @@ def estimate_to_csv(
     method: str | BatchMethod = "soft",
     batch_size: int = 8,
     overlay_dir: str | Path | None = None,
+    overlay_video: str | Path | None = None,
+    select: FrameSelection = ALL_FRAMES,
+    resume: bool = False,
+    smoothing: SmoothingOptions | None = None,
     progress: bool = False,
 ) -> RunSummary:
     """Measure every frame of ``paths`` and write the results CSV, one flushed row per frame.
 
-    ``overlay_dir``: also write one overlay PNG per readable frame there. ``progress``: show a
-    progress bar (frames, frames/s) on stderr when it is a terminal. Rows already written stay
-    if the run is interrupted. Raises InputError / ValueError / MethodUnavailable / OSError
-    before the first frame for unusable arguments.
+    ``overlay_dir``: also write one overlay PNG per readable frame there; ``overlay_video``: an
+    annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
+    :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
+    the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
+    smoothed columns (:mod:`sinkjax._smoothing`). ``progress``: a progress bar (frames/s, ETA)
+    on stderr when it is a terminal. Rows already written stay if the run is interrupted.
+    Raises InputError / ValueError / ResumeError / MethodUnavailable / OSError before the first
+    frame for unusable arguments.
     """
     from tqdm import tqdm
 
-    from ._overlay import OverlayWriter
-
     inputs = paths if isinstance(paths, Inputs) else expand_paths(paths)
-    pairs = iter_estimates(iter_frames(inputs.sources), rig, method=method, batch_size=batch_size)
     out = Path(out_csv)
+    done: set[str] = set()  # filled below; the frames are read lazily, after that
+    frames = iter_frames(inputs.sources, select=select, skip=done)
+    pairs = iter_estimates(frames, rig, method=method, batch_size=batch_size)
+    video = None
+    if overlay_video is not None:
+        video = OverlayVideoWriter(
+            overlay_video, rig, fps=frame_rate(inputs.sources, select=select)
+        )
+    # Only now, with every argument checked, may the output file be touched.
+    if resume:
+        done.update(prepare_resume(out))
+    fresh = not (resume and out.is_file() and out.stat().st_size > 0)
     out.parent.mkdir(parents=True, exist_ok=True)
     overlays = OverlayWriter(overlay_dir, rig) if overlay_dir is not None else None
-    summary = RunSummary(out=out)
+    if video is not None and done:
+        log.warning(
+            "%s holds only the frames measured in this run (not the %d resumed rows)",
+            overlay_video,
+            len(done),
+        )
+    summary = RunSummary(out=out, n_resumed=len(done))
     start = time.perf_counter()
-    total = count_frames(inputs.sources) if progress else None
-    with (
-        open(out, "w", newline="", encoding="utf-8") as stream,
-        tqdm(total=total, unit=" frames", disable=None if progress else True) as bar,
-    ):
-        writer = ResultsWriter(stream)
-        for frame, result in pairs:
-            writer.write(result)
-            summary.counts[result.status] += 1
-            summary.n_read += frame.image is not None
-            if overlays is not None:
-                try:
-                    overlays.write(frame.image, result, frame.stem or Path(frame.name).stem)
-                except (OSError, cv2.error) as e:
-                    log.warning("%s: overlay not written (%s)", frame.name, e)
-            bar.update(1)
+    total = count_frames(inputs.sources, select=select) if progress else None
+    bar = tqdm(
+        total=total,
+        initial=min(len(done), total or 0),
+        unit=" frames",
+        desc=method if isinstance(method, str) else None,
+        disable=None if progress else True,
+    )
+    try:
+        with open(out, "w" if fresh else "a", newline="", encoding="utf-8") as stream:
+            writer = ResultsWriter(stream, header=fresh)
+            for frame, result in pairs:
+                writer.write(result)
+                summary.counts[result.status] += 1
+                summary.n_read += frame.image is not None
+                _write_overlays(frame, result, overlays, video)
+                bar.update(1)
+    finally:
+        bar.close()
+        if video is not None:
+            video.close()
     summary.seconds = time.perf_counter() - start
+    if smoothing is not None:
+        smooth_csv(out, out, smoothing)
+        summary.smoothed = True
     return summary
+
+
+def _write_overlays(
+    frame: Frame,
+    result: FrameResult,
+    overlays: OverlayWriter | None,
+    video: OverlayVideoWriter | None,
+) -> None:
+    if overlays is not None:
+        try:
+            overlays.write(frame.image, result, frame.stem or Path(frame.name).stem)
+        except (OSError, cv2.error) as e:
+            log.warning("%s: overlay not written (%s)", frame.name, e)
+    if video is not None:
+        try:
+            video.write(frame.image, result)
+        except (OSError, cv2.error) as e:
+            log.warning("%s: overlay video frame not written (%s)", frame.name, e)

@@ -1,4 +1,4 @@
-"""Plots of results against ground truth (matplotlib's Agg renderer: no display needed)."""
+"""Plots of results: against ground truth, and over time (matplotlib's Agg renderer, no display)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ._results import NO_CONTACT, OK
+from ._smoothing import SmoothingOptions
 
 QUANTITIES = (
     # (results column, std column, truth column, label, unit)
@@ -153,4 +154,98 @@ def plot_accuracy(
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
+    return out
+
+
+def _frame_axis(images: list[str]) -> tuple[list[float], str]:
+    """x values for results rows: the video frame number when every row is a frame of one
+    video, else the row's position in the CSV."""
+    paths = {image.rpartition("#")[0] for image in images}
+    frames = [image.rpartition("#")[2] for image in images]
+    if len(paths) == 1 and "" not in paths and all(f.isdigit() for f in frames):
+        return [float(f) for f in frames], "frame index (video frame)"
+    return [float(i) for i in range(len(images))], "frame index (row of the results CSV)"
+
+
+def plot_series(
+    results_csv: str | Path,
+    out_png: str | Path,
+    *,
+    smoothed: bool = False,
+    options: SmoothingOptions | None = None,
+    title: str | None = None,
+) -> Path:
+    """Sinkage (mm), θ1 and θ2 (deg) over the frame index, each with a ±1σ band, as a PNG.
+
+    Frames without an estimate are gaps, marked with a red tick under the curve. ``smoothed``:
+    also draw the smoothed series and its ±1σ band, from the CSV's smoothed columns or, when it
+    has none, computed here with ``options``. Raises ValueError for a file that is not a
+    results CSV. Returns the PNG's path.
+    """
+    import numpy as np
+    from matplotlib.figure import Figure
+    from matplotlib.transforms import blended_transform_factory
+
+    from ._smoothing import QUANTITIES as SMOOTHED, read_results, smooth_rows
+
+    header, rows = read_results(results_csv)
+    x, xlabel = _frame_axis([r["image"] for r in rows])
+    xs = np.asarray(x)
+    measured = np.array([r.get("status") in (OK, NO_CONTACT) for r in rows], dtype=bool)
+    smooth: list[dict[str, float]] | None = None
+    if smoothed:
+        if all(q[2] in header for q in SMOOTHED):
+            smooth = [
+                {c: math.nan if (v := number(r.get(c))) is None else v for c in header}
+                for r in rows
+            ]
+        else:
+            smooth = smooth_rows(rows, options or SmoothingOptions())
+
+    def column(name: str, source: list[dict[str, str]]) -> np.ndarray:
+        values = [number(r.get(name)) for r in source]
+        return np.array([math.nan if v is None else v for v in values], dtype=float)
+
+    fig = Figure(figsize=(11, 8.5), layout="constrained")
+    axes = fig.subplots(3, 1, sharex=True)
+    marker = "o" if len(rows) <= 200 else None
+    for ax, (col, std_col, _, label, unit), smooth_cols in zip(
+        axes, QUANTITIES, SMOOTHED, strict=True
+    ):
+        y = np.where(measured, column(col, rows), math.nan)
+        s = np.where(measured, column(std_col, rows), math.nan)
+        ax.plot(xs, y, marker=marker, ms=3, lw=1, color="tab:blue", label="estimate")
+        if np.isfinite(s).any():
+            ax.fill_between(
+                xs, y - s, y + s, color="tab:blue", alpha=0.25, lw=0, label="estimate ± 1σ"
+            )
+        if smooth is not None:
+            m = np.array([row.get(smooth_cols[2], math.nan) for row in smooth], dtype=float)
+            ms = np.array([row.get(smooth_cols[3], math.nan) for row in smooth], dtype=float)
+            ax.plot(xs, m, lw=1.5, color="tab:orange", label="smoothed")
+            ax.fill_between(
+                xs, m - ms, m + ms, color="tab:orange", alpha=0.25, lw=0, label="smoothed ± 1σ"
+            )
+        failed_x = xs[~measured]
+        if failed_x.size:
+            trans = blended_transform_factory(ax.transData, ax.transAxes)
+            ax.plot(
+                failed_x,
+                np.full(failed_x.shape, 0.03),
+                "|",
+                color="tab:red",
+                ms=10,
+                transform=trans,
+                label="no estimate",
+            )
+        ax.set_ylabel(f"{label} [{unit}]")
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8, ncols=5)
+    axes[-1].set_xlabel(xlabel)
+    n_failed = int((~measured).sum())
+    heading = title or f"sinkjax results: {Path(results_csv).name}"
+    fig.suptitle(f"{heading} ({len(rows)} frames, {n_failed} without an estimate)")
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
     return out

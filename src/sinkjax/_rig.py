@@ -11,7 +11,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-# The hue band is circular: H_d = H_w + (P_d - 1) * HUE_SCALE_DEG, H_a = H_w + (P_a - 1) * HUE_SCALE_DEG.
+# The hue band is circular: H_d = H_w + (P_d - 1) * HUE_SCALE_DEG, likewise H_a with P_a.
 # The paper writes H_a = P_a * H_w, which depends on where hue's zero happens to be (a red wheel at
 # H_w ~ 0 would get an empty band, at H_w ~ 359 a huge one). Using a fixed half-turn as the scale
 # keeps the paper's P_a/P_d meaning ("percent around the wheel's mean") for every wheel colour.
@@ -93,7 +93,7 @@ def validate_rig_fields(
             f"got {list(confidence_rect)!r}"
         )
     if travel not in ("right", "left"):
-        raise RigError(f"{source}: travel must be \"right\" or \"left\", got {travel!r}")
+        raise RigError(f'{source}: travel must be "right" or "left", got {travel!r}')
 
 
 def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
@@ -125,7 +125,11 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
         )
     seg_kwargs: dict[str, Any] = {}
     for name, value in seg_data.items():
-        if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
+        if (
+            not isinstance(value, int | float)
+            or isinstance(value, bool)
+            or not math.isfinite(value)
+        ):
             raise RigError(f"{source}: [segmentation] {name} must be a number, got {value!r}")
         seg_kwargs[name] = float(value)
     seg = SegmentationParams(**seg_kwargs)

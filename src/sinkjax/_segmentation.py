@@ -77,9 +77,9 @@ def _blur_axis(a: Float[Array, "H W"], axis: int) -> Float[Array, "H W"]:
     p = jnp.pad(a, pad, mode="edge")
     n = a.shape[axis]
     taps = (1.0, 4.0, 6.0, 4.0, 1.0)
-    out = sum(
-        t * jax.lax.slice_in_dim(p, i, i + n, axis=axis) for i, t in enumerate(taps)
-    )
+    out = jnp.zeros_like(a)
+    for i, t in enumerate(taps):
+        out = out + t * jax.lax.slice_in_dim(p, i, i + n, axis=axis)
     return out / 16.0
 
 

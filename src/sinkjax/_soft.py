@@ -100,9 +100,7 @@ def measure(
     )
 
 
-@functools.partial(
-    jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty")
-)
+@functools.partial(jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty"))
 def _measure_batch(
     images_u8: Array,
     seg: SegmentationParams,
@@ -115,7 +113,10 @@ def _measure_batch(
     # which the solver requires).
     images = images_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
     one = functools.partial(
-        measure, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm,
+        measure,
+        rect=rect,
+        travel=travel,
+        wheel_radius_mm=wheel_radius_mm,
         uncertainty=uncertainty,
     )
     # On a CPU, vmap would run the Levenberg-Marquardt loop of all frames in lockstep until the
@@ -162,8 +163,12 @@ def estimate_batch(
     size = pad_to or 1 << (n - 1).bit_length()
     batch = np.stack(images + [images[0]] * (size - n))
     out = _measure_batch(
-        jnp.asarray(batch), rig.segmentation, rig.confidence_rect, rig.travel,
-        float(rig.wheel_radius_mm), uncertainty,
+        jnp.asarray(batch),
+        rig.segmentation,
+        rig.confidence_rect,
+        rig.travel,
+        float(rig.wheel_radius_mm),
+        uncertainty,
     )
     out = jax.tree_util.tree_map(np.asarray, out)
     return [_row(out, i, names[i], rig) for i in range(n)]
@@ -182,7 +187,11 @@ def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
         )
     if status == R.FIT_FAILED or not np.all(np.isfinite(p)):
         return R.FrameResult(
-            image=name, status=R.FIT_FAILED, center_x_px=cx, center_y_px=cy, radius_px=r,
+            image=name,
+            status=R.FIT_FAILED,
+            center_x_px=cx,
+            center_y_px=cy,
+            radius_px=r,
             message="the circle-plus-line fit did not converge; the frame may be blurred or "
             "the soil and wheel colours too similar",
         )
@@ -202,14 +211,25 @@ def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
             (cx + sign * u1, cy + k * u1 + bb),
         )
     overlay = R.Overlay(
-        centre_px=(cx, cy), radius_px=r, boundary_px=boundary, line_px=line,
-        a_px=(ax, ay) if status == R.OK else None, b_px=(bx, by) if status == R.OK else None,
+        centre_px=(cx, cy),
+        radius_px=r,
+        boundary_px=boundary,
+        line_px=line,
+        a_px=(ax, ay) if status == R.OK else None,
+        b_px=(bx, by) if status == R.OK else None,
     )
     if status == R.NO_CONTACT:
         # Conventions §1: zeros. The fit has no boundary to be uncertain about: no sigma.
         return R.FrameResult(
-            image=name, status=status, sinkage_mm=0.0, theta1_deg=0.0, theta2_deg=0.0,
-            center_x_px=cx, center_y_px=cy, radius_px=r, overlay=overlay,
+            image=name,
+            status=status,
+            sinkage_mm=0.0,
+            theta1_deg=0.0,
+            theta2_deg=0.0,
+            center_x_px=cx,
+            center_y_px=cy,
+            radius_px=r,
+            overlay=overlay,
             message="the soil does not reach the rim (no wheel-soil boundary inside the rim)",
         )
     return R.FrameResult(

@@ -1,0 +1,299 @@
+"""The classic pipeline (sinkjax._classic) against independent references and drawn wheels.
+
+The drawn wheels are supersampled analytic scenes (exact coverage anti-aliasing), so their rim,
+soil line, z0 and angles are known exactly; no synthetic renderer is involved.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sinkjax._classic import (
+    _geometry_padded,
+    confidence_means,
+    estimate_classic,
+    hard_mask,
+    rgb_to_hsi_np,
+)
+from sinkjax._results import BAD_IMAGE, BAD_RECT, FIT_FAILED, NO_CONTACT, NO_WHEEL, OK
+from sinkjax._rig import Rig, SegmentationParams
+
+WHEEL_RGB = (200, 40, 35)  # red: hue straddles 0/360
+SOIL_RGB = (190, 165, 120)
+SKY_RGB = (70, 90, 130)
+HOLE_RGB = (25, 22, 24)
+W, H = 320, 240
+R_MM = 140.0
+
+
+def draw_wheel(
+    *,
+    cx: float = 160.3,
+    cy: float = 100.6,
+    r: float = 85.4,
+    soil=lambda x: 165.2 + 0.0 * x,
+    n_lugs: int = 0,
+    lug_h: float = 0.0,
+    lug_w_frac: float = 0.35,
+    hole_r: float = 0.0,
+    n_holes: int = 0,
+    ring: float = 55.0,
+    ss: int = 4,
+) -> np.ndarray:
+    """(H, W, 3) uint8: a red wheel (rim radius r, optional lugs, a ring of ``n_holes`` dark
+    lightening holes of radius ``hole_r`` at distance ``ring`` from O, or one annular cut-out
+    ``hole_r`` without ``n_holes``) behind soil y > soil(x)."""
+    xs = (np.arange(W * ss) + 0.5) / ss - 0.5
+    ys = (np.arange(H * ss) + 0.5) / ss - 0.5
+    x, y = np.meshgrid(xs, ys)
+    dx, dy = x - cx, y - cy
+    rho = np.hypot(dx, dy)
+    wheel = rho <= r
+    if n_lugs:
+        pitch = 2 * np.pi / n_lugs
+        a = (np.arctan2(dy, dx) + 0.1 + pitch / 2) % pitch - pitch / 2
+        lug = (np.abs(rho * np.sin(a)) <= lug_w_frac * pitch * r / 2) & (np.cos(a) > 0)
+        wheel |= (rho <= r + lug_h) & lug
+    holes = np.zeros_like(wheel)
+    if hole_r and not n_holes:
+        wheel &= ~((rho < hole_r) & (rho > 0.5 * hole_r))
+    for k in range(n_holes):
+        a = 0.3 + 2 * np.pi * k / n_holes
+        holes |= np.hypot(x - cx - ring * np.cos(a), y - cy - ring * np.sin(a)) < hole_r
+    img = np.empty((*x.shape, 3))
+    img[:] = SKY_RGB
+    img[wheel] = WHEEL_RGB
+    img[wheel & holes] = HOLE_RGB
+    img[y > soil(x)] = SOIL_RGB
+    img = img.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def rig(travel: str = "right", rect=(150, 30, 24, 12)) -> Rig:
+    return Rig(wheel_radius_mm=R_MM, confidence_rect=rect, travel=travel)
+
+
+def line_truth(cx, cy, r, y0, slope):
+    """Exact z0 (px), theta1, theta2 (deg) for soil y = y0 + slope (x - cx), travel right."""
+    # Line in the O frame: v = slope u + (y0 - cy); intersections with u^2 + v^2 = r^2.
+    k, b = slope, y0 - cy
+    d = abs(b) / math.hypot(k, 1.0)
+    qa, qb, qc = 1 + k * k, 2 * k * b, b * b - r * r
+    disc = math.sqrt(qb * qb - 4 * qa * qc)
+    ua, ub = (-qb + disc) / (2 * qa), (-qb - disc) / (2 * qa)
+    t1 = math.pi / 2 - math.atan((k * ua + b) / ua)
+    t2 = math.pi / 2 + math.atan((k * ub + b) / ub)
+    return r - d, math.degrees(t1), math.degrees(t2)
+
+
+# --------------------------------------------------------------------------------------------
+# Colour
+
+
+def _hsi_reference(r: float, g: float, b: float) -> tuple[float, float, float]:
+    num = 0.5 * ((r - g) + (r - b))
+    den = math.sqrt((r - g) ** 2 + (r - b) * (g - b))
+    if den == 0.0:
+        h = 0.0
+    else:
+        theta = math.degrees(math.acos(max(-1.0, min(1.0, num / den))))
+        h = theta if b <= g else 360.0 - theta
+    total = r + g + b
+    s = 0.0 if total == 0 else 1.0 - 3.0 * min(r, g, b) / total
+    return h % 360.0, s, total / 3.0
+
+
+def test_hsi_matches_per_pixel_reference():
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, size=(12, 17, 3), dtype=np.uint8)
+    img[0, :3] = [[0, 0, 0], [128, 128, 128], [255, 255, 255]]
+    h, s, i = rgb_to_hsi_np(img)
+    assert h.dtype == s.dtype == i.dtype == np.float64
+    for row in range(img.shape[0]):
+        for col in range(img.shape[1]):
+            ref = _hsi_reference(*(float(v) / 255.0 for v in img[row, col]))
+            got = (h[row, col], s[row, col], i[row, col])
+            # Hue differences across 0/360 are the same angle.
+            dh = (got[0] - ref[0] + 180.0) % 360.0 - 180.0
+            assert abs(dh) < 1e-9 and got[1:] == pytest.approx(ref[1:], abs=1e-12)
+    assert np.all((h >= 0) & (h < 360)) and np.all((s >= 0) & (s <= 1))
+
+
+@pytest.mark.parametrize(
+    ("rgb", "hue"),
+    [
+        ((1, 0, 0), 0.0),
+        ((1, 1, 0), 60.0),
+        ((0, 1, 0), 120.0),
+        ((0, 1, 1), 180.0),
+        ((0, 0, 1), 240.0),
+        ((1, 0, 1), 300.0),
+    ],
+)
+def test_hsi_primaries(rgb, hue):
+    h, s, i = rgb_to_hsi_np(np.array([[rgb]], dtype=np.float64))
+    assert h[0, 0] == pytest.approx(hue, abs=1e-9)
+    assert s[0, 0] == pytest.approx(1.0)
+    assert i[0, 0] == pytest.approx(sum(rgb) / 3)
+
+
+def test_hsi_grey_and_black_are_finite_and_silent():
+    img = np.array([[[0, 0, 0], [0.5, 0.5, 0.5], [1.0, 1.0, 1.0]]])
+    with np.errstate(all="raise"):
+        h, s, i = rgb_to_hsi_np(img)
+    np.testing.assert_array_equal(h, 0.0)
+    np.testing.assert_array_equal(s, 0.0)
+    np.testing.assert_allclose(i, [[0.0, 0.5, 1.0]])
+
+
+# --------------------------------------------------------------------------------------------
+# Confidence means and the binary image
+
+
+def test_confidence_means_is_circular_for_red():
+    h = np.array([[350.0, 10.0, 355.0, 5.0]])
+    s = np.array([[0.2, 0.4, 0.6, 0.8]])
+    h_w, s_w = confidence_means(h, s, (0, 0, 4, 1))
+    assert min(h_w, 360.0 - h_w) < 1e-9  # the arithmetic mean would be 180 (cyan)
+    assert s_w == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("rect", [(-1, 0, 2, 1), (3, 0, 2, 1), (0, 0, 4, 2), (0, 0, 0, 1)])
+def test_confidence_means_rejects_rect_off_image(rect):
+    with pytest.raises(ValueError, match="confidence rect"):
+        confidence_means(np.zeros((1, 4)), np.zeros((1, 4)), rect)
+
+
+def test_hard_mask_on_red_wheel():
+    img = draw_wheel(ss=1)
+    h, s, _ = rgb_to_hsi_np(img)
+    h_w, s_w = confidence_means(h, s, (150, 60, 24, 18))
+    assert min(h_w, 360.0 - h_w) < 5.0
+    mask = hard_mask(h, s, h_w, s_w, SegmentationParams())
+    wheel = np.all(img == WHEEL_RGB, axis=-1)
+    np.testing.assert_array_equal(mask, wheel)
+
+
+def test_hard_mask_band_wraps_around_zero():
+    h = np.array([[355.0, 5.0, 17.0, 19.0, 341.0, 343.0]])
+    s = np.full_like(h, 0.5)
+    mask = hard_mask(h, s, 0.0, 0.5, SegmentationParams())  # +-18 deg band
+    np.testing.assert_array_equal(mask, [[True, True, True, False, False, True]])
+
+
+# --------------------------------------------------------------------------------------------
+# Hough and the whole pipeline on drawn wheels
+
+
+@pytest.mark.parametrize(("n_lugs", "lug_h"), [(0, 0.0), (24, 8.0), (30, 3.0), (12, 8.5)])
+def test_hough_finds_rim_not_lug_tips(n_lugs, lug_h):
+    res = estimate_classic(draw_wheel(n_lugs=n_lugs, lug_h=lug_h, hole_r=40.0), rig())
+    assert res.status == OK, res.message
+    # Lug tips are at r + lug_h (up to 10 % of r): the rim must come out, to well under a pixel.
+    assert res.center_x_px == pytest.approx(160.3, abs=0.25)
+    assert res.center_y_px == pytest.approx(100.6, abs=0.25)
+    assert res.radius_px == pytest.approx(85.4, abs=0.25)
+
+
+@pytest.mark.parametrize(
+    ("y0", "slope"), [(165.2, 0.0), (150.7, 0.0), (160.4, 0.15), (170.9, -0.1)]
+)
+@pytest.mark.parametrize("travel", ["right", "left"])
+def test_straight_soil_matches_analytic(y0, slope, travel):
+    cx, cy, r = 160.3, 100.6, 85.4
+    img = draw_wheel(soil=lambda x: y0 + slope * (x - cx), n_lugs=20, lug_h=6.0)
+    res = estimate_classic(img, rig(travel))
+    assert res.status == OK, res.message
+    z0, t1, t2 = line_truth(cx, cy, r, y0, slope)
+    if travel == "left":
+        t1, t2 = t2, t1
+    assert res.sinkage_mm == pytest.approx(z0 * R_MM / r, rel=0.015)
+    assert res.theta1_deg == pytest.approx(t1, abs=0.3)
+    assert res.theta2_deg == pytest.approx(t2, abs=0.3)
+    assert res.sinkage_std_mm is None and res.theta1_std_deg is None
+    ov = res.overlay
+    assert ov is not None and ov.boundary_px is not None and ov.boundary_px.shape[1] == 2
+    # A is on the entry side, on the rim.
+    ax, ay = ov.a_px
+    assert (ax - res.center_x_px) * (1 if travel == "right" else -1) > 0
+    assert math.hypot(ax - res.center_x_px, ay - res.center_y_px) == pytest.approx(
+        res.radius_px, abs=1e-6
+    )
+
+
+@pytest.mark.parametrize("y0", [155.3, 160.0])
+def test_lightening_holes_cut_by_the_soil_are_filled(y0):
+    # The soil line crosses the lowest of six holes; left open, its outline would count as
+    # wheel-soil boundary (3-7 % too little sinkage here).
+    cx, cy, r = 160.3, 100.6, 85.4
+    img = draw_wheel(soil=lambda x: y0 + 0.0 * x, n_holes=6, hole_r=9.0, ring=55.0)
+    res = estimate_classic(img, rig())
+    assert res.status == OK, res.message
+    z0, t1, t2 = line_truth(cx, cy, r, y0, 0.0)
+    assert res.sinkage_mm == pytest.approx(z0 * R_MM / r, rel=0.01)
+    assert res.theta1_deg == pytest.approx(t1, abs=0.3)
+    assert res.theta2_deg == pytest.approx(t2, abs=0.3)
+
+
+def test_boundary_equations_compile_once_per_bucket():
+    # Eqs. 1-3 run jitted on boundaries padded to a power of two: 3 soil levels -> 1-2 compiles.
+    before = _geometry_padded._cache_size()
+    for y0 in (150.2, 150.6, 151.1):
+        estimate_classic(draw_wheel(soil=lambda x, y0=y0: y0 + 0.0 * x, ss=2), rig())
+    assert _geometry_padded._cache_size() - before <= 2
+
+
+def test_no_contact():
+    res = estimate_classic(draw_wheel(soil=lambda x: 200.0 + 0.0 * x), rig())
+    assert res.status == NO_CONTACT and res.message
+    assert res.sinkage_mm == 0.0 and res.theta1_deg == 0.0 and res.theta2_deg == 0.0
+    assert res.radius_px == pytest.approx(85.4, abs=0.5)
+
+
+def test_face_torn_above_the_centre_fails_loudly():
+    # A washed-out patch on the upper rim (a lamp's glare) makes the outline dip inside the rim
+    # above O; that is never soil, so the frame fails instead of reporting a wrong number.
+    img = draw_wheel()
+    yy, xx = np.mgrid[0:H, 0:W]
+    glare = np.hypot(xx - 200.0, yy - 40.0) < 18.0
+    img[glare] = (235, 225, 225)
+    res = estimate_classic(img, rig())
+    assert res.status == FIT_FAILED and "above the wheel centre" in res.message
+
+
+def test_bad_rect():
+    res = estimate_classic(draw_wheel(ss=1), rig(rect=(310, 60, 24, 18)))
+    assert res.status == BAD_RECT and "inside" in res.message
+
+
+def test_no_wheel():
+    grey = np.full((H, W, 3), 120, np.uint8)
+    res = estimate_classic(grey, rig())
+    assert res.status == NO_WHEEL and res.message
+    # The rectangle on the sky: a blob with no circular outline is not a wheel either.
+    res = estimate_classic(draw_wheel(ss=1), rig(rect=(5, 5, 10, 10)))
+    assert res.status not in (OK, NO_CONTACT) and res.message
+
+
+def test_never_raises_on_bad_content():
+    rng = np.random.default_rng(1)
+    images = [
+        rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8),
+        np.zeros((H, W, 3), np.uint8),
+        np.full((H, W, 3), 255, np.uint8),
+        np.zeros((40, 40, 3), np.uint8),
+        draw_wheel(ss=1)[:, :170],  # half a wheel
+    ]
+    for img in images:
+        res = estimate_classic(img, rig(rect=(20, 10, 8, 8)))
+        assert res.status in (OK, NO_CONTACT, NO_WHEEL, FIT_FAILED, BAD_RECT)
+        assert res.status == OK or res.message
+
+
+@pytest.mark.parametrize("bad", [np.zeros((10, 10), np.uint8), np.zeros((10, 10, 3), np.float32)])
+def test_bad_image(bad):
+    res = estimate_classic(bad, rig(rect=(0, 0, 2, 2)))
+    assert res.status == BAD_IMAGE and "uint8" in res.message
