@@ -30,6 +30,10 @@ RIM_LOSS_SCALE_PX = 1.0
 # short window (shallow sinkage) no longer swings the end around.
 END_ANGLE_PRIOR_POINTS = 2.0
 END_LEVER_PX = 10.0
+# Likewise each end line's offset, with a twentieth of a point's weight: an end with no points
+# of its own (the boundary never gets clear of the rim: very shallow contact) becomes the
+# equivalent line, not a line held by nothing whose rim intersection has unbounded variance.
+END_OFFSET_PRIOR_POINTS = 0.05
 # Tiny pull towards the starting point: keeps the normal equations regular when a group has no
 # points (no contact: no boundary, so no line) without moving well-determined parameters.
 PRIOR_WEIGHT = 1e-4
@@ -81,7 +85,13 @@ def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
     prior = jnp.sqrt(PRIOR_WEIGHT) * (p - ev.start)
     line_angle = jnp.arctan(p[3])
     lever = jnp.sqrt(END_ANGLE_PRIOR_POINTS) * END_LEVER_PX
-    end_prior = lever * jnp.stack([p[5] - line_angle, p[7] - line_angle])
+    line_offset = p[4] * jnp.cos(line_angle)
+    end_prior = jnp.concatenate(
+        [
+            lever * jnp.stack([p[5] - line_angle, p[7] - line_angle]),
+            jnp.sqrt(END_OFFSET_PRIOR_POINTS) * jnp.stack([p[6] - line_offset, p[8] - line_offset]),
+        ]
+    )
     # rim and line members are disjoint (outside / inside the rim), so are the two end windows.
     return jnp.concatenate([rim + line, end_a + end_b, prior, end_prior])
 

@@ -22,7 +22,7 @@ from ._hough import hough_rim
 from ._model import end_point, measurements
 from ._outline import extract_outline, refine_outline
 from ._rig import Rig, SegmentationParams
-from ._segmentation import wheel_mask
+from ._segmentation import soft_open, wheel_mask
 from ._uncertainty import UncertaintyModel, covariance, measurement_std
 
 STATUS_CODES = (R.OK, R.NO_CONTACT, R.NO_WHEEL, R.FIT_FAILED)
@@ -34,8 +34,13 @@ MIN_BOUNDARY_POINTS = 4.0
 
 
 class SoftEstimate(eqx.Module):
-    """One frame's soft estimate. Angles in radians; sinkage in mm and px; status codes index
-    :data:`STATUS_CODES`. For no contact the measurements are 0 (conventions §1)."""
+    """One frame's soft estimate: sinkage in mm, angles in radians, each with one sigma.
+
+    ``params`` are the fitted model (cx, cy, r px; k, b; end lines, see ``_model``) and
+    ``params_std`` their sigmas before the uncertainty model's scaling; ``status`` indexes
+    :data:`STATUS_CODES`; the boundary arrays are the outline points and their boundary weights
+    (for overlays). For no contact the measurements are 0 (conventions §1).
+    """
 
     sinkage_mm: Float[Array, ""]
     sinkage_std_mm: Float[Array, ""]
@@ -59,15 +64,21 @@ def measure(
     travel: str = "right",
     wheel_radius_mm: float = 1.0,
     uncertainty: UncertaintyModel | None = None,
+    open_radius_px: int = 0,
 ) -> SoftEstimate:
     """The soft method on one image in [0, 1]. Keyword arguments are static.
 
     ``image`` is (H, W, 3) RGB in [0, 1]; ``rect`` the confidence rectangle (x, y, w, h) in px;
     ``wheel_radius_mm`` the rim's physical radius R (sinkage is reported as z0 * R / r).
+    ``open_radius_px`` > 0 adds a grey-level opening of the mask (the paper's erosion/dilation
+    as a differentiable min/max filter); by default only the outline's smoothing cleans the mask,
+    which ``experiments/ablation_cleanup.py`` shows is enough.
     Never raises for image content: problems are reported in ``status``.
     """
     height, width = image.shape[:2]
     mask = wheel_mask(image, seg, rect)
+    if open_radius_px > 0:
+        mask = soft_open(mask, open_radius_px)
     outline = refine_outline(image, extract_outline(mask))
     # The starting circle is a discrete choice: no gradient flows through it.
     circle = jax.lax.stop_gradient(hough_rim(outline, height, width))

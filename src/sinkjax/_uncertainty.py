@@ -60,7 +60,7 @@ def covariance(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, "9 9"]:
             jnp.where(ev.w_rim > 0, s_rim, s_line),
             jnp.full((n,), s_end),
             jnp.ones((N_PARAMS,)),
-            jnp.full((2,), s_end),
+            jnp.full((4,), s_end),
         ]
     )
     jw = jac / scale[:, None]
