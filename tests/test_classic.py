@@ -1,7 +1,9 @@
 """The classic pipeline (sinkjax._classic) against independent references and drawn wheels.
 
 The drawn wheels are supersampled analytic scenes (exact coverage anti-aliasing), so their rim,
-soil line, z0 and angles are known exactly; no synthetic renderer is involved.
+soil line, z0 and angles are known exactly; no synthetic renderer is involved. Both modes are
+tested: the paper's method (``refine=False``, the default) to integer-pixel tolerances, and the
+sub-pixel refinement (``refine=True``) to tighter ones.
 """
 
 from __future__ import annotations
@@ -61,8 +63,8 @@ def draw_wheel(
     if hole_r and not n_holes:
         wheel &= ~((rho < hole_r) & (rho > 0.5 * hole_r))
     for k in range(n_holes):
-        a = 0.3 + 2 * np.pi * k / n_holes
-        holes |= np.hypot(x - cx - ring * np.cos(a), y - cy - ring * np.sin(a)) < hole_r
+        ang = 0.3 + 2 * np.pi * k / n_holes
+        holes |= np.hypot(x - cx - ring * np.cos(ang), y - cy - ring * np.sin(ang)) < hole_r
     img = np.empty((*x.shape, 3))
     img[:] = SKY_RGB
     img[wheel] = WHEEL_RGB
@@ -187,35 +189,92 @@ def test_hard_mask_band_wraps_around_zero():
 # --------------------------------------------------------------------------------------------
 # Hough and the whole pipeline on drawn wheels
 
+CX, CY, R_PX = 160.3, 100.6, 85.4  # draw_wheel's defaults
+STRAIGHT_SOILS = [(165.2, 0.0), (150.7, 0.0), (160.4, 0.15), (170.9, -0.1)]
+
+
+def straight_soil(y0: float, slope: float):
+    return lambda x: y0 + slope * (x - CX)
+
 
 @pytest.mark.parametrize(("n_lugs", "lug_h"), [(0, 0.0), (24, 8.0), (30, 3.0), (12, 8.5)])
-def test_hough_finds_rim_not_lug_tips(n_lugs, lug_h):
-    res = estimate_classic(draw_wheel(n_lugs=n_lugs, lug_h=lug_h, hole_r=40.0), rig())
+@pytest.mark.parametrize("refine", [False, True])
+def test_hough_finds_rim_not_lug_tips(n_lugs, lug_h, refine):
+    res = estimate_classic(
+        draw_wheel(n_lugs=n_lugs, lug_h=lug_h, hole_r=40.0), rig(), refine=refine
+    )
     assert res.status == OK, res.message
     # Lug tips are at r + lug_h (up to 10 % of r): the rim must come out, to well under a pixel.
-    assert res.center_x_px == pytest.approx(160.3, abs=0.25)
-    assert res.center_y_px == pytest.approx(100.6, abs=0.25)
-    assert res.radius_px == pytest.approx(85.4, abs=0.25)
+    assert res.center_x_px == pytest.approx(CX, abs=0.25)
+    assert res.center_y_px == pytest.approx(CY, abs=0.25)
+    # The paper's rim goes through the outline's pixel centres, the last wheel pixels, which
+    # lie half a pixel inside the drawn edge on average; the refined rim is on the edge itself.
+    assert res.radius_px == pytest.approx(
+        R_PX if refine else R_PX - 0.5, abs=0.25 if refine else 0.2
+    )
 
 
-@pytest.mark.parametrize(
-    ("y0", "slope"), [(165.2, 0.0), (150.7, 0.0), (160.4, 0.15), (170.9, -0.1)]
-)
+def test_default_is_the_papers_method():
+    img = draw_wheel(soil=straight_soil(160.4, 0.15), n_lugs=20, lug_h=6.0)
+    default, paper = estimate_classic(img, rig()), estimate_classic(img, rig(), refine=False)
+    assert (default.sinkage_mm, default.theta1_deg, default.theta2_deg) == (
+        paper.sinkage_mm,
+        paper.theta1_deg,
+        paper.theta2_deg,
+    )
+    refined = estimate_classic(img, rig(), refine=True)
+    assert refined.sinkage_mm != paper.sinkage_mm
+
+
+@pytest.mark.parametrize(("y0", "slope"), STRAIGHT_SOILS)
 @pytest.mark.parametrize("travel", ["right", "left"])
-def test_straight_soil_matches_analytic(y0, slope, travel):
-    cx, cy, r = 160.3, 100.6, 85.4
-    img = draw_wheel(soil=lambda x: y0 + slope * (x - cx), n_lugs=20, lug_h=6.0)
+def test_papers_method_on_straight_soil(y0, slope, travel):
+    img = draw_wheel(soil=straight_soil(y0, slope), n_lugs=20, lug_h=6.0)
     res = estimate_classic(img, rig(travel))
     assert res.status == OK, res.message
-    z0, t1, t2 = line_truth(cx, cy, r, y0, slope)
+    z0, t1, t2 = line_truth(CX, CY, R_PX, y0, slope)
     if travel == "left":
         t1, t2 = t2, t1
-    assert res.sinkage_mm == pytest.approx(z0 * R_MM / r, rel=0.015)
+    # Integer pixels: the outline points of rim and soil both sit about half a pixel inside
+    # their edges, which cancels in z0 to well under a pixel.
+    assert res.sinkage_mm == pytest.approx(z0 * R_MM / R_PX, abs=0.5 * R_MM / R_PX)
+    # A and B are the boundary's last points before the margin inside the rim (~1.3 px here)
+    # plus the staircase: ~2 px inside it, which on this r = 85 px wheel, at 30-40 deg, is
+    # up to ~2 deg short of where the soil meets the rim. Never long.
+    for got, want in ((res.theta1_deg, t1), (res.theta2_deg, t2)):
+        assert want - 2.0 <= got <= want + 0.3
+    assert res.sinkage_std_mm is None and res.theta1_std_deg is None
+    # What Eqs. 1-3 were given: integer outline points, every one counted once, and A, B the
+    # boundary's extreme points on the entry and exit sides.
+    ov = res.overlay
+    assert ov is not None and ov.boundary_px is not None and ov.a_px and ov.b_px and ov.line_px
+    pts = ov.boundary_px
+    np.testing.assert_array_equal(pts, np.rint(pts))
+    sign = 1.0 if travel == "right" else -1.0
+    assert sign * ov.a_px[0] == max(sign * pts[:, 0])
+    assert sign * ov.b_px[0] == min(sign * pts[:, 0])
+    assert any(tuple(p) == ov.a_px for p in pts) and any(tuple(p) == ov.b_px for p in pts)
+    k, b = np.polyfit(pts[:, 0], pts[:, 1], 1)
+    for x, y in ov.line_px:
+        assert y == pytest.approx(k * x + b, abs=1e-6)
+
+
+@pytest.mark.parametrize(("y0", "slope"), STRAIGHT_SOILS)
+@pytest.mark.parametrize("travel", ["right", "left"])
+def test_refined_straight_soil_matches_analytic(y0, slope, travel):
+    img = draw_wheel(soil=straight_soil(y0, slope), n_lugs=20, lug_h=6.0)
+    res = estimate_classic(img, rig(travel), refine=True)
+    assert res.status == OK, res.message
+    z0, t1, t2 = line_truth(CX, CY, R_PX, y0, slope)
+    if travel == "left":
+        t1, t2 = t2, t1
+    assert res.sinkage_mm == pytest.approx(z0 * R_MM / R_PX, rel=0.015)
     assert res.theta1_deg == pytest.approx(t1, abs=0.3)
     assert res.theta2_deg == pytest.approx(t2, abs=0.3)
     assert res.sinkage_std_mm is None and res.theta1_std_deg is None
     ov = res.overlay
     assert ov is not None and ov.boundary_px is not None and ov.boundary_px.shape[1] == 2
+    assert ov.a_px is not None and res.center_x_px is not None and res.center_y_px is not None
     # A is on the entry side, on the rim.
     ax, ay = ov.a_px
     assert (ax - res.center_x_px) * (1 if travel == "right" else -1) > 0
@@ -225,43 +284,53 @@ def test_straight_soil_matches_analytic(y0, slope, travel):
 
 
 @pytest.mark.parametrize("y0", [155.3, 160.0])
-def test_lightening_holes_cut_by_the_soil_are_filled(y0):
-    # The soil line crosses the lowest of six holes; left open, its outline would count as
-    # wheel-soil boundary (3-7 % too little sinkage here).
-    cx, cy, r = 160.3, 100.6, 85.4
+def test_lightening_holes_cut_by_the_soil(y0):
+    # The soil line crosses the lowest of six holes. The paper's method leaves it open: its
+    # outline, above the soil line, counts as wheel-soil boundary and lifts the equivalent line
+    # (4-8 % too much sinkage here). The refinement fills it from the intact holes' pattern.
     img = draw_wheel(soil=lambda x: y0 + 0.0 * x, n_holes=6, hole_r=9.0, ring=55.0)
-    res = estimate_classic(img, rig())
+    z0, t1, t2 = line_truth(CX, CY, R_PX, y0, 0.0)
+    paper = estimate_classic(img, rig())
+    assert paper.status == OK, paper.message
+    assert paper.sinkage_mm > 1.02 * z0 * R_MM / R_PX
+    res = estimate_classic(img, rig(), refine=True)
     assert res.status == OK, res.message
-    z0, t1, t2 = line_truth(cx, cy, r, y0, 0.0)
-    assert res.sinkage_mm == pytest.approx(z0 * R_MM / r, rel=0.01)
+    assert res.sinkage_mm == pytest.approx(z0 * R_MM / R_PX, rel=0.01)
     assert res.theta1_deg == pytest.approx(t1, abs=0.3)
     assert res.theta2_deg == pytest.approx(t2, abs=0.3)
 
 
 def test_boundary_equations_compile_once_per_bucket():
     # Eqs. 1-3 run jitted on boundaries padded to a power of two: 3 soil levels -> 1-2 compiles.
-    before = _geometry_padded._cache_size()
+    cache_size = _geometry_padded._cache_size  # type: ignore[attr-defined]
+    before = cache_size()
     for y0 in (150.2, 150.6, 151.1):
         estimate_classic(draw_wheel(soil=lambda x, y0=y0: y0 + 0.0 * x, ss=2), rig())
-    assert _geometry_padded._cache_size() - before <= 2
+    assert cache_size() - before <= 2
 
 
-def test_no_contact():
-    res = estimate_classic(draw_wheel(soil=lambda x: 200.0 + 0.0 * x), rig())
+@pytest.mark.parametrize("refine", [False, True])
+def test_no_contact(refine):
+    res = estimate_classic(draw_wheel(soil=lambda x: 200.0 + 0.0 * x), rig(), refine=refine)
     assert res.status == NO_CONTACT and res.message
     assert res.sinkage_mm == 0.0 and res.theta1_deg == 0.0 and res.theta2_deg == 0.0
-    assert res.radius_px == pytest.approx(85.4, abs=0.5)
+    assert res.radius_px == pytest.approx(R_PX, abs=0.6)
 
 
-def test_face_torn_above_the_centre_fails_loudly():
+def test_face_torn_above_the_centre():
     # A washed-out patch on the upper rim (a lamp's glare) makes the outline dip inside the rim
-    # above O; that is never soil, so the frame fails instead of reporting a wrong number.
+    # above O; that is never soil. The refinement fails the frame instead of reporting a wrong
+    # number; the paper's method has no such check and takes the dip for boundary.
     img = draw_wheel()
     yy, xx = np.mgrid[0:H, 0:W]
     glare = np.hypot(xx - 200.0, yy - 40.0) < 18.0
     img[glare] = (235, 225, 225)
-    res = estimate_classic(img, rig())
+    res = estimate_classic(img, rig(), refine=True)
     assert res.status == FIT_FAILED and "above the wheel centre" in res.message
+    paper = estimate_classic(img, rig())
+    assert paper.status == OK and paper.overlay is not None
+    assert paper.overlay.boundary_px is not None
+    assert paper.overlay.boundary_px[:, 1].min() < paper.center_y_px
 
 
 def test_bad_rect():
