@@ -51,6 +51,23 @@ def _shift(a: Float[Array, "H W"], dy: int, dx: int) -> Float[Array, "H W"]:
     return p[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
 
 
+def _compact(flags: Bool[Array, " N"], size: int) -> tuple[Array, Array]:
+    """Indices of the true entries (first ``size`` of them, padded with 0) and their count.
+
+    ``jnp.nonzero(size=...)`` does the same; a parallel prefix sum for the output positions is
+    about twice as fast on a CPU (XLA's cumsum of a long vector is sequential there).
+    """
+    f = flags.astype(jnp.int32)
+    pos = jax.lax.associative_scan(jnp.add, f) - 1
+    slot = jnp.where(flags, pos, size)
+    idx = (
+        jnp.zeros(size + 1, jnp.int32)
+        .at[slot]
+        .set(jnp.arange(f.shape[0], dtype=jnp.int32), mode="drop")
+    )
+    return idx[:size], pos[-1] + 1
+
+
 def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> Outline:
     """Sub-pixel outline points of a soft mask. ``capacity`` is static."""
     height, width = mask.shape
@@ -75,19 +92,29 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     ) / 8.0
     mag2 = gx * gx + gy * gy
     mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0)
-    # Quantise the gradient direction to 0/45/90/135 degrees for non-maximum suppression.
-    ang = jnp.mod(jnp.arctan2(gy, jnp.where(mag2 > 0, gx, 1.0)), jnp.pi)
-    q = jnp.round(ang / (jnp.pi / 4)).astype(jnp.int32) % 4
+    # Quantise the gradient direction to 0/45/90/135 degrees for non-maximum suppression, by
+    # comparisons (tan 22.5 deg) rather than an arctangent of every pixel.
+    ax, ay = jnp.abs(gx), jnp.abs(gy)
+    t22 = 0.41421356
+    q = jnp.where(
+        ay <= t22 * ax, 0, jnp.where(ax <= t22 * ay, 2, jnp.where(gx * gy > 0, 1, 3))
+    ).astype(jnp.int32)
     steps = ((0, 1), (1, 1), (1, 0), (1, -1))  # (dy, dx) for 0, 45, 90, 135 degrees
-    fwd = jnp.stack([_shift(mag, dy, dx) for dy, dx in steps])
-    bwd = jnp.stack([_shift(mag, -dy, -dx) for dy, dx in steps])
-    e_f = jnp.take_along_axis(fwd, q[None], 0)[0]
-    e_b = jnp.take_along_axis(bwd, q[None], 0)[0]
+
+    def along(sign: int) -> Array:
+        shifted = [_shift(mag, sign * dy, sign * dx) for dy, dx in steps]
+        return jnp.where(
+            q == 0,
+            shifted[0],
+            jnp.where(q == 1, shifted[1], jnp.where(q == 2, shifted[2], shifted[3])),
+        )
+
+    e_f = along(1)
+    e_b = along(-1)
     ridge = (mag >= e_f) & (mag > e_b) & (mag > _EDGE_MIN)
     ridge = ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
 
-    flat = jnp.nonzero(ridge.ravel(), size=k, fill_value=0)[0]
-    count = jnp.sum(ridge)
+    flat, count = _compact(ridge.ravel(), k)
     valid = jnp.arange(k) < count
     rows = flat // width
     cols = flat % width
@@ -113,7 +140,7 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     # Wheel mass strictly below each pixel in its column, starting 3 px down (past the edge's
     # own blur): a wheel-soil boundary point has ~0, the top edge of a hole has a lot.
     solid = jax.nn.sigmoid((m - 0.5) / 0.1)
-    below = jnp.flip(jnp.cumsum(jnp.flip(solid, 0), 0), 0)
+    below = jax.lax.associative_scan(jnp.add, solid, axis=0, reverse=True)
     below = jnp.concatenate([below[3:], jnp.zeros((3, width), mask.dtype)], 0)
     # Mask 3 px beyond the edge: ~0 on the wheel's true outline (rim, lug tips, boundary), high
     # on a partial edge inside the wheel (a darker rim ring, shading), which must not be the rim.
