@@ -58,7 +58,7 @@ class Config:
     calibration_steps: int
 
 
-FULL = Config(240, 180, 1, 10, 10, 60, 6, 3e-4, 30)
+FULL = Config(240, 180, 1, 10, 10, 60, 6, 5e-4, 30)
 QUICK = Config(160, 120, 1, 5, 5, 10, 5, 3e-4, 8)
 
 
@@ -347,6 +347,24 @@ def table(scores: list[Score]) -> list[str]:
     return lines
 
 
+def verdict(scores: list[Score]) -> list[str]:
+    """Which method has the lowest median |z0 error| and median mean |angle error|, overall."""
+    rows = []
+    for m in dict.fromkeys(s.method for s in scores):
+        e = np.concatenate([s.abs_err for s in scores if s.method == m])
+        rows.append((m, float(np.median(e[:, 0])), float(np.median(e[:, 1:].mean(1)))))
+    best_z = min(rows, key=lambda r: r[1])
+    best_a = min(rows, key=lambda r: r[2])
+    return [
+        f"Lowest median |z0 error| over all test frames: {best_z[0]} ({best_z[1]:.2f} mm); "
+        f"lowest median of the mean |θ1|, |θ2| error: {best_a[0]} ({best_a[2]:.2f} deg).",
+        "",
+        "Per method (median |z0 error| mm, median mean-angle error deg): "
+        + "; ".join(f"{m}: {z:.2f}, {a:.2f}" for m, z, a in rows)
+        + ".",
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small images, few steps (smoke run)")
@@ -405,6 +423,8 @@ def main(argv: list[str] | None = None) -> int:
         "(status other than ok) counts as measuring zeros, as in calibration.",
         "",
         *table(scores),
+        "",
+        *verdict(scores),
         "",
         "Loss: pseudo-Huber of the errors in units of 1 mm / 1 deg per frame, summed over "
         "(z0, θ1, θ2); a frame not measured counts as measuring zeros. Head training: "

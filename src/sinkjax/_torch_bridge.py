@@ -31,7 +31,7 @@ from ._hough import hough_rim
 from ._model import Evidence, measurements
 from ._outline import extract_outline, refine_outline
 from ._rig import SegmentationParams
-from ._segmentation import wheel_mask
+from ._segmentation import soft_open, wheel_mask
 from ._soft import (
     _FIT_FAILED,
     _NO_CONTACT,
@@ -104,7 +104,8 @@ def measure_from_mask(
     """The soft method from a given soft wheel mask in [0, 1] (1 = wheel) and its image in [0, 1].
 
     Mirrors :func:`sinkjax._soft.measure` step for step after ``wheel_mask``; the image is still
-    needed because the outline is refined on it. Keyword arguments are static.
+    needed because the outline is refined on it. Keyword arguments are static. (``measure``'s
+    ``open_radius_px`` belongs to the segmentation: open the mask before passing it.)
     Raises ValueError if the shapes disagree.
     """
     if image.ndim != 3 or image.shape[-1] != 3 or mask.shape != image.shape[:2]:
@@ -188,12 +189,15 @@ def _from_image_batch(
     travel: str,
     wheel_radius_mm: float,
     uncertainty: UncertaintyModel | None,
+    open_radius_px: int,
 ) -> BatchFn:
     def one(image_chw: Array, seg_vector: Array) -> tuple[Array, Array]:
         # measure(image, seg) is measure_from_mask(image, wheel_mask(image, seg)) (tested); this
         # path has the NaN-free gradients of the weight guard.
         image = jnp.moveaxis(image_chw, 0, -1)
         mask = wheel_mask(image, seg_from_vector(seg_vector), rect)
+        if open_radius_px > 0:
+            mask = soft_open(mask, open_radius_px)
         est = measure_from_mask(
             image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, uncertainty=uncertainty
         )
@@ -237,8 +241,15 @@ def from_image_batch(
     travel: str,
     wheel_radius_mm: float,
     uncertainty: UncertaintyModel | None = None,
+    open_radius_px: int = 0,
 ) -> JittedBatch:
     """Jitted ``(images (B,3,H,W), seg_vector (6,)) -> (values (B,6), status (B,))``."""
     travel_sign(travel)
-    fn = _from_image_batch(tuple(rect), travel, float(wheel_radius_mm), uncertainty)  # type: ignore[arg-type]
+    fn = _from_image_batch(
+        tuple(rect),  # type: ignore[arg-type]
+        travel,
+        float(wheel_radius_mm),
+        uncertainty,
+        int(open_radius_px),
+    )
     return JittedBatch(fn)

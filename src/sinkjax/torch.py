@@ -326,7 +326,7 @@ def _to_jax(t: Tensor, dtype: torch.dtype) -> jax.Array:
     except (RuntimeError, TypeError, ValueError, BufferError):
         # DLPack fails where JAX has no backend for the tensor's device (a CUDA tensor with a
         # CPU-only jaxlib) or rejects the layout: copy through host memory instead.
-        return jnp.asarray(np.asarray(t.cpu().numpy()))
+        return jnp.asarray(t.cpu().numpy())
 
 
 def _to_torch(a: jax.Array, like: Tensor) -> Tensor:
@@ -450,13 +450,16 @@ class SinkageFromImage(_JaxFunction):
         travel: str,
         wheel_radius_mm: float,
         uncertainty: UncertaintyModel | None = None,
+        open_radius_px: int = 0,
     ) -> tuple[Tensor, Tensor]:
-        batch = _bridge.from_image_batch(tuple(rect), travel, float(wheel_radius_mm), uncertainty)
+        batch = _bridge.from_image_batch(
+            tuple(rect), travel, float(wheel_radius_mm), uncertainty, open_radius_px
+        )
         return _JaxFunction._run(ctx, batch, 1, images, seg_vector)
 
     @staticmethod
     def backward(ctx: Any, g_values: Tensor, g_status: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        return (*_JaxFunction._grad(ctx, g_values), None, None, None, None)
+        return (*_JaxFunction._grad(ctx, g_values), None, None, None, None, None)
 
 
 class TorchEstimate(NamedTuple):
@@ -485,6 +488,7 @@ def measure_torch(
     travel: str = "right",
     wheel_radius_mm: float = 1.0,
     uncertainty: UncertaintyModel | None = None,
+    open_radius_px: int = 0,
 ) -> TorchEstimate:
     """Sinkage and entry/exit angles with one-sigma, differentiable through the JAX estimator.
 
@@ -500,6 +504,8 @@ def measure_torch(
         travel: "right" or "left".
         wheel_radius_mm: physical rim radius R (z0 is reported in mm).
         uncertainty: how the one-sigma is scaled and floored (default: the estimator's).
+        open_radius_px: without masks, as in :func:`sinkjax._soft.measure`; with masks, apply
+            :func:`soft_open` to them yourself.
 
     Returns:
         :class:`TorchEstimate` of (B,) tensors in the images' dtype and device.
@@ -523,7 +529,7 @@ def measure_torch(
         p = _param_tensors(seg, images)
         seg_vector = torch.stack([p[n] for n in SEG_FIELDS])
         values, status = SinkageFromImage.apply(
-            images, seg_vector, rect, travel, float(wheel_radius_mm), uncertainty
+            images, seg_vector, rect, travel, float(wheel_radius_mm), uncertainty, open_radius_px
         )
     return TorchEstimate(*values.unbind(-1), status)  # type: ignore[call-arg]
 
