@@ -59,6 +59,7 @@ from ._soft import (
     SoftEstimate as SoftEstimate,
     estimate_batch as estimate_batch,
     measure as measure,
+    measure_from_mask as measure_from_mask,
 )
 from ._synth import (
     Scene as Scene,

@@ -75,10 +75,35 @@ def measure(
     which ``experiments/ablation_cleanup.py`` shows is enough.
     Never raises for image content: problems are reported in ``status``.
     """
-    height, width = image.shape[:2]
     mask = wheel_mask(image, seg, rect)
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
+    return measure_from_mask(
+        image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, uncertainty=uncertainty
+    )
+
+
+def measure_from_mask(
+    image: Float[Array, "H W 3"],
+    mask: Float[Array, "H W"],
+    *,
+    travel: str = "right",
+    wheel_radius_mm: float = 1.0,
+    uncertainty: UncertaintyModel | None = None,
+) -> SoftEstimate:
+    """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
+
+    ``measure`` is ``measure_from_mask(image, wheel_mask(image, seg, rect))``; a learned
+    segmenter (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
+    outline is located on its colours. Keyword arguments are static.
+    Raises ValueError if the shapes disagree.
+    """
+    if image.ndim != 3 or image.shape[-1] != 3 or mask.shape != image.shape[:2]:
+        raise ValueError(
+            f"need image (H, W, 3) and mask (H, W) of the same H, W; got image {image.shape} "
+            f"and mask {mask.shape}"
+        )
+    height, width = mask.shape
     outline = refine_outline(image, extract_outline(mask))
     # The starting circle is a discrete choice: no gradient flows through it.
     circle = jax.lax.stop_gradient(hough_rim(outline, height, width))
