@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+import sinkjax
 from sinkjax import _pipeline
 from sinkjax._cli import COMMANDS, main
 from sinkjax._results import COLUMNS, FrameResult, Overlay
@@ -259,6 +260,8 @@ def _fake_synth(monkeypatch) -> list[dict]:
     module.write_recording = write_recording  # type: ignore[attr-defined]
     module.PRESETS = {"full": None, "flat": None}  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "sinkjax._synth", module)
+    # `from . import _synth` finds the package attribute first (sinkjax/__init__ imports it).
+    monkeypatch.setattr(sinkjax, "_synth", module)
     return calls
 
 
