@@ -1,0 +1,168 @@
+"""The paper experiments (experiments/run_all.py and its scripts) cannot rot.
+
+One test runs ``run_all.py --quick`` into a temporary folder and checks that every table and
+figure exists and holds numbers; the others check the experiments' building blocks against
+independent arithmetic (the soil model, the paper's tables, the terrain design, the statistics).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import re
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPERIMENTS = ROOT / "experiments"
+OUTPUTS = {
+    "paper_terrain.md": ["paper_terrain.png"],
+    "paper_precision.md": ["paper_precision.png"],
+    "paper_depth.md": ["paper_depth.png"],
+    "exp_lighting.md": ["exp_lighting.png"],
+    "exp_uncertainty.md": ["exp_uncertainty_reliability.png", "exp_uncertainty_sigma.png"],
+    "exp_calibration.md": ["exp_calibration.png"],
+    "exp_speed.md": ["exp_speed.png"],
+}
+NUMBER = re.compile(r"-?\d+\.\d+|-?\d+")
+
+
+def _module(name: str) -> ModuleType:
+    if str(EXPERIMENTS) not in sys.path:
+        sys.path.insert(0, str(EXPERIMENTS))
+    return importlib.import_module(name)
+
+
+def _table_rows(text: str) -> list[list[str]]:
+    """Body rows of every Markdown table in ``text``."""
+    rows = []
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("|") and i > 0 and lines[i - 1].startswith("|"):
+            if set(line.replace("|", "").strip()) <= {"-", ":"}:
+                continue
+            rows.append([c.strip() for c in line.strip().strip("|").split("|")])
+    return rows
+
+
+@pytest.mark.slow
+def test_run_all_quick_writes_every_table_and_figure(tmp_path: Path) -> None:
+    out, cache = tmp_path / "results", tmp_path / "cache"
+    cmd = [sys.executable, str(EXPERIMENTS / "run_all.py"), "--quick", "--out-dir", str(out)]
+    proc = subprocess.run(
+        [*cmd, "--cache-dir", str(cache)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-6000:]
+    for md, pngs in OUTPUTS.items():
+        text = (out / md).read_text(encoding="utf-8")
+        rows = _table_rows(text)
+        assert rows, f"{md} has no table"
+        numbers = [float(x) for r in rows for c in r[1:] for x in NUMBER.findall(c)]
+        assert numbers and all(math.isfinite(x) for x in numbers), md
+        for png in pngs:
+            data = (out / png).read_bytes()
+            assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, png
+            assert f"]({png})" in text, f"{md} does not show {png}"
+    index = (out / "README.md").read_text(encoding="utf-8")
+    for name in (*OUTPUTS, *(p for ps in OUTPUTS.values() for p in ps)):
+        assert f"]({name})" in index, f"the index does not link {name}"
+    headline = _table_rows(index.split("## Headline")[1].split("##")[0])
+    assert len(headline) >= 10
+    # classic and soft columns hold a measurement in every row the method has one for.
+    for row in headline:
+        for cell in row[2:4]:
+            assert NUMBER.search(cell) or cell in ("—", "no uncertainty"), row
+    assert "FAILED" not in proc.stderr
+    # Every compute experiment left its per-frame records for the uncertainty pooling.
+    for name in ("paper_terrain", "paper_precision", "paper_depth", "exp_lighting"):
+        assert (cache / f"{name}_frames.csv").is_file()
+
+
+def test_paper_tables_copied_from_the_paper() -> None:
+    c = _module("common")
+    assert c.PAPER_SLIPS == (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
+    for load in (30, 90):
+        for q in ("sinkage", "theta1", "theta2"):
+            assert len(c.PAPER_TABLES[load][q]) == 8
+    # Spot checks against the paper's text: first and last cells of each table.
+    assert c.PAPER_TABLES[30]["sinkage"][-1] == 8.70
+    assert c.PAPER_TABLES[30]["theta1"][0] == 19.74
+    assert c.PAPER_TABLES[90]["sinkage"][6] == 9.13
+    assert c.PAPER_TABLES[90]["theta2"][-1] == 3.82
+
+
+def test_soil_model_matches_bekker_by_hand() -> None:
+    c = _module("common")
+    # Bekker by hand, 90 N, Table 1 soil, b = 0.15 m, D = 0.28 m.
+    k = -20.7e3 / 0.15 + 1594.8e3
+    z = (3 * 90 / ((3 - 0.79) * 0.15 * k * math.sqrt(0.28))) ** (2 / 2.58)
+    assert c.bekker_static_sinkage_mm(90.0) == pytest.approx(1000 * z * c.LUG_SINKAGE_FACTOR)
+    assert 3.0 < c.sinkage_for(30, 0.0) < c.sinkage_for(30, 0.7) < c.sinkage_for(90, 0.7)
+    assert c.slip_sinkage_factor(0.0) == 1.0
+    assert c.slip_sinkage_factor(0.6) == pytest.approx(1.6 / 0.7)
+
+
+def test_terrain_design_orders_true_sinkage_as_the_paper_says(tmp_path: Path) -> None:
+    """Raised terrain: true sinkage > the flat-level sensor value; hollow, rough: less."""
+    from sinkjax import _synth as S
+
+    c = _module("common")
+    terrain = _module("paper_terrain")
+    setup = c.make_setup(True, tmp_path / "o", tmp_path / "c")
+    base = c.paper_scene(setup)
+    for name, sign in terrain.EXPECTED.items():
+        for slip in terrain.SLIPS:
+            scene, sensor = terrain.terrain_scene(base, name, slip, np.random.default_rng(0))
+            true = S.true_geometry(scene).sinkage_mm
+            assert c.valid_contact(scene)
+            if sign:
+                assert np.sign(true - sensor) == sign, (name, slip, true, sensor)
+            else:
+                assert abs(true - sensor) < 0.15 * sensor, (name, slip, true, sensor)
+
+
+def test_every_experiment_scene_has_one_rig(tmp_path: Path) -> None:
+    """Terrain and lighting change nothing the rig depends on: one compile per image size."""
+    from sinkjax import _synth as S
+
+    c = _module("common")
+    lighting = _module("exp_lighting")
+    setup = c.make_setup(False, tmp_path / "o", tmp_path / "c")
+    base = c.paper_scene(setup)
+    scenes = [c.place(base, d, **c.bulldozing(base, d, 0.5)) for d in (1.0, 20.0)]
+    for factor, (_, levels, _) in lighting.FACTORS.items():
+        scenes += [lighting.condition(base, factor, lv) for lv in levels]
+    rigs = [S.rig_for(s) for s in scenes]
+    assert len({(r.confidence_rect, r.travel, r.wheel_radius_mm) for r in rigs}) == 1
+
+
+def test_coverage_statistics() -> None:
+    u = _module("exp_uncertainty")
+    assert u.z_for(0.95) == pytest.approx(1.959964, abs=1e-5)
+    assert u.z_for(0.6827) == pytest.approx(1.0, abs=1e-3)
+    rng = np.random.default_rng(0)
+    sd = rng.uniform(0.5, 2.0, 20000)
+    err = rng.standard_normal(20000) * sd
+    for p in (0.5, 0.9, 0.99):
+        assert u.coverage(err, sd, p) == pytest.approx(p, abs=0.01)
+    lo, hi = u.wilson(45, 50)
+    assert lo < 0.9 < hi and 0 <= lo and hi <= 1
+    assert statistics.NormalDist().cdf(u.z_for(0.8)) == pytest.approx(0.9)
+
+
+def test_markdown_table_parsing() -> None:
+    c = _module("common")
+    text = "intro\n\n| rig | default | cal s (wall) |\n|---|---|---|\n| a/0 | 1.8 | 78 |\n\nend"
+    rows = c.parse_md_table(text, "rig")
+    assert rows == [{"rig": "a/0", "default": "1.8", "cal s (wall)": "78"}]
+    assert c.number("1.4x") == 1.4 and math.isnan(c.number("-"))
