@@ -12,8 +12,8 @@ median relative sinkage error of
 
 Writes ``experiments/results/calibration_vs_grid.md`` and ``calibration_vs_grid.png``.
 
-    python experiments/calibration_vs_grid.py            # 640x480, 60 steps, 3^4 grid
-    python experiments/calibration_vs_grid.py --quick    # 320x240, 30 steps, 2^4 grid
+    python experiments/calibration_vs_grid.py            # 640x480, 50 steps, 3^4 grid
+    python experiments/calibration_vs_grid.py --quick    # 320x240, 40 steps, 2^4 grid
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ class Config:
 FULL = Config(
     640,
     480,
-    60,
+    50,
     {
         "p_d_hue": (0.8, 0.9, 0.95),
         "p_a_hue": (1.05, 1.1, 1.2),
@@ -68,7 +68,7 @@ FULL = Config(
 QUICK = Config(
     320,
     240,
-    30,
+    40,
     {
         "p_d_hue": (0.85, 0.95),
         "p_a_hue": (1.05, 1.15),

@@ -11,9 +11,10 @@ moves every parameter by a comparable amount).
 
 Loss of one labelled cell: pseudo-Huber of the error in units of 1 mm (sinkage) or 1 degree
 (angles); empty cells are masked out; the total is the mean over measured cells. A frame whose
-status is not ``ok`` counts as measuring zeros (what ``no_contact`` reports); a frame labelled with
-contact whose boundary evidence is weak gets a smooth extra term that rewards boundary weight, so
-the gradient points back towards thresholds under which it measures.
+status is not ``ok`` counts as measuring zeros (what ``no_contact`` reports), which is flat in the
+thresholds; so a frame labelled with contact that does not measure also gets a surrogate term with
+a gradient: how far the soft mask is from having an edge at the labelled soil line inside the rim
+(:func:`boundary_contrast`), plus a term rewarding boundary weight when the fit sees too little.
 """
 
 from __future__ import annotations
@@ -38,7 +39,9 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
 from . import _fit, _model
 from ._augment import DEFAULT_CONFIG, AugmentConfig, augment
+from ._geometry import travel_sign
 from ._rig import Rig, RigError, SegmentationParams, load_rig, save_rig
+from ._segmentation import wheel_mask
 from ._soft import MIN_BOUNDARY_POINTS, STATUS_CODES, measure
 
 LABEL_COLUMNS = ("image", "sinkage_mm", "theta1_deg", "theta2_deg")
@@ -47,8 +50,13 @@ LOSS_SCALES = (1.0, 1.0, 1.0)  # 1 mm of sinkage weighs as much as 1 degree of a
 HUBER_DELTA = 1.0  # pseudo-Huber corner in those units: quadratic below, linear above
 # A frame labelled with contact needs this much boundary weight before the deficit term is 0.
 BOUNDARY_TARGET = 4.0 * MIN_BOUNDARY_POINTS
+# Surrogate for frames that do not measure: strips between STRIP_NEAR and STRIP_FAR rim radii
+# above / below the labelled soil line, weighted like CONTRAST_WEIGHT mm (or deg) of error.
+STRIP_NEAR, STRIP_FAR = 0.03, 0.12
+CONTRAST_WEIGHT = 5.0
 RAW_NAMES = ("p_d_hue", "p_a_hue", "p_d_sat", "p_a_sat", "temperature_hue_deg", "temperature_sat")
 RAW_LIMIT = 12.0
+BACKTRACK = 2.0  # a loss above this times the best so far sends Adam back to the best point
 _TEMPERATURE_UNIT_HUE_DEG = 1.0
 _TEMPERATURE_UNIT_SAT = 0.01
 _OK = STATUS_CODES.index("ok")
@@ -307,6 +315,60 @@ class FrameLoss(eqx.Module):
     loss: Float[Array, "*n"]
 
 
+def labelled_soil_side(
+    u_px: Float[Array, "H W"],
+    v_px: Float[Array, "H W"],
+    r_px: Float[Array, ""],
+    target: Float[Array, " 3"],
+    wheel_radius_mm: float,
+) -> Float[Array, "H W"]:
+    """Signed distance (px, > 0 on the soil side) to the soil line that the labels describe.
+
+    Wheel frame (O-centred, entry side at +u, v down). With both angles labelled it is the chord
+    A B (A = r (sin theta1, cos theta1), B = r (-sin theta2, cos theta2)); otherwise the flat line
+    at depth r - z0 below O. NaN where the labels do not say (no sinkage and no angles).
+    """
+    t1, t2 = jnp.radians(target[1]), jnp.radians(target[2])
+    angles = jnp.isfinite(t1) & jnp.isfinite(t2) & (t1 + t2 > 0)
+    t1, t2 = jnp.where(angles, t1, 0.5), jnp.where(angles, t2, 0.5)
+    ua, va = r_px * jnp.sin(t1), r_px * jnp.cos(t1)
+    ub, vb = -r_px * jnp.sin(t2), r_px * jnp.cos(t2)
+    k = (va - vb) / (ua - ub)
+    chord = ((v_px - va) - k * (u_px - ua)) / jnp.sqrt(1.0 + k * k)
+    z0_px = target[0] * r_px / wheel_radius_mm
+    flat = v_px - (r_px - z0_px)
+    return jnp.where(angles, chord, flat)
+
+
+def boundary_contrast(
+    mask: Float[Array, "H W"],
+    circle: Float[Array, " 3"],
+    target: Float[Array, " 3"],
+    *,
+    sign: float,
+    wheel_radius_mm: float,
+) -> Float[Array, ""]:
+    """How far the soft mask is from an edge at the labelled soil line, in [0, 2].
+
+    Mean of (1 - mask) over a strip of wheel face just above the line plus the mean of the mask
+    over a strip of soil just below it, both inside the rim ``circle`` (cx, cy, r px). It is the
+    surrogate that gives a frame that does not measure a gradient: the mask itself moves with
+    every threshold, where the fit sees nothing until an edge appears.
+    """
+    height, width = mask.shape
+    cx, cy, r = circle[0], circle[1], circle[2]
+    yy, xx = jnp.mgrid[0:height, 0:width]
+    u, v = sign * (xx - cx), yy - cy
+    side = labelled_soil_side(u, v, r, target, wheel_radius_mm) / r
+    inside = u * u + v * v < (0.93 * r) ** 2
+    above = inside & (side > -STRIP_FAR) & (side < -STRIP_NEAR)
+    below = inside & (side > STRIP_NEAR) & (side < STRIP_FAR)
+    n_above, n_below = jnp.sum(above), jnp.sum(below)
+    wheel_missing = jnp.sum(jnp.where(above, 1.0 - mask, 0.0)) / jnp.maximum(n_above, 1)
+    soil_as_wheel = jnp.sum(jnp.where(below, mask, 0.0)) / jnp.maximum(n_below, 1)
+    return jnp.where(n_above > 0, wheel_missing, 0.0) + jnp.where(n_below > 0, soil_as_wheel, 0.0)
+
+
 def frame_loss(
     raw: Float[Array, " 6"],
     image: Float[Array, "H W 3"],
@@ -316,17 +378,32 @@ def frame_loss(
     travel: str,
     wheel_radius_mm: float,
 ) -> tuple[Float[Array, ""], FrameLoss]:
-    """Sum of one frame's robust cell losses (NaN targets are not measured) and what it saw."""
-    est = measure(image, from_raw(raw), rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    """One frame's loss (sum over its measured cells plus the penalties) and what it saw."""
+    seg = from_raw(raw)
+    est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
     values = jnp.stack([est.sinkage_mm, jnp.degrees(est.theta1_rad), jnp.degrees(est.theta2_rad)])
+    ok = est.status == _OK
     # Not ok: counts as measuring zeros, so a failed fit's values never reach the loss.
-    used = jnp.where((est.status == _OK) & jnp.isfinite(values), values, 0.0)
+    used = jnp.where(ok & jnp.isfinite(values), values, 0.0)
     measured = jnp.isfinite(target)
     err = (used - jnp.where(measured, target, 0.0)) / jnp.asarray(LOSS_SCALES, used.dtype)
     loss = jnp.sum(jnp.where(measured, pseudo_huber(err), 0.0))
     contact = measured[0] & (jnp.where(measured[0], target[0], 0.0) > 0)
     deficit = jax.nn.relu(BOUNDARY_TARGET - jnp.sum(est.boundary_weight)) / BOUNDARY_TARGET
     loss = loss + jnp.where(contact, pseudo_huber(deficit), 0.0)
+    # A labelled contact frame that does not measure: pull the mask towards an edge at the
+    # labelled soil line (the rim circle is found even when the boundary is not).
+    circle = jax.lax.stop_gradient(est.params[:3])
+    usable = contact & ~ok & jnp.all(jnp.isfinite(circle)) & (circle[2] > 1.0)
+    safe_circle = jnp.where(usable, circle, jnp.asarray([0.0, 0.0, 2.0], circle.dtype))
+    contrast = boundary_contrast(
+        wheel_mask(image, seg, rect),
+        safe_circle,
+        target,
+        sign=travel_sign(travel),
+        wheel_radius_mm=wheel_radius_mm,
+    )
+    loss = loss + jnp.where(usable, CONTRAST_WEIGHT * contrast, 0.0)
     return loss, FrameLoss(values=values, status=est.status, loss=loss)
 
 
@@ -414,7 +491,11 @@ class Errors:
 
 @dataclasses.dataclass(frozen=True)
 class CalibrationResult:
-    """The calibrated rig, the loss at every step, and the labelled frames' errors."""
+    """The calibrated rig, the losses, and the labelled frames' errors before and after.
+
+    ``losses`` is the loss at every Adam step (``losses[0]`` that of the rig's own thresholds);
+    the calibrated rig is the one of step ``best_step``.
+    """
 
     rig: Rig
     losses: tuple[float, ...]
@@ -423,11 +504,19 @@ class CalibrationResult:
     after: Errors
     seconds: float
 
+    @property
+    def loss_before(self) -> float:
+        return self.losses[0]
+
+    @property
+    def loss_after(self) -> float:
+        return self.losses[self.best_step]
+
     def summary(self) -> str:
         params = ", ".join(f"{k} = {v:.4g}" for k, v in self.rig.segmentation.as_dict().items())
         return "\n".join(
             [
-                f"loss {self.losses[0]:.4g} -> {self.losses[self.best_step]:.4g} (best at step "
+                f"loss {self.loss_before:.4g} -> {self.loss_after:.4g} (best at step "
                 f"{self.best_step} of {len(self.losses) - 1}; {self.seconds:.0f} s)",
                 f"median |error| before: {self.before.line()}",
                 f"median |error| after:  {self.after.line()}",
@@ -440,9 +529,9 @@ def calibrate(
     frames: LabelledFrames,
     rig: Rig,
     *,
-    steps: int = 60,
+    steps: int = 50,
     learning_rate: float = 0.1,
-    patience: int = 20,
+    patience: int = 12,
     augment: bool = False,
     augment_config: AugmentConfig = DEFAULT_CONFIG,
     seed: int = 0,
@@ -452,10 +541,11 @@ def calibrate(
     """Tune ``rig.segmentation`` to labelled frames with Adam; returns the calibrated rig.
 
     Deterministic (``seed`` only drives the augmentations). Keeps the parameters with the lowest
-    loss on the frames as labelled (measured at every step, also under ``augment``), so a step
-    into a region where frames fail is undone; stops early after ``patience`` steps without a
-    better loss. With ``augment`` each step's gradient averages the frames as labelled and under
-    a random lighting change. Raises ValueError for ``steps`` < 0 or ``learning_rate`` <= 0.
+    loss on the frames as labelled (measured at every step, also under ``augment``); a step that
+    more than doubles it (frames stopped measuring) goes back there with half the step size;
+    stops after ``patience`` steps without a better loss. With ``augment`` each step's gradient
+    averages the frames as labelled and under a random lighting change. Raises ValueError for
+    ``steps`` < 0 or ``learning_rate`` <= 0.
     """
     from tqdm import tqdm
 
@@ -466,30 +556,36 @@ def calibrate(
     static = dict(
         rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=float(rig.wheel_radius_mm)
     )
+    key = jax.random.key(seed)
 
-    def call(r: Array, k: PRNGKeyArray, **augmenting: object) -> LossAndGrad:
+    def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
         # Positional arrays, keyword statics: one compiled function for every caller.
         return loss_and_grad(r, images, targets, k, **static, **augmenting)  # type: ignore[arg-type]
 
-    raw = to_raw(rig.segmentation).astype(jnp.result_type(float))
-    schedule = optax.cosine_decay_schedule(learning_rate, max(steps, 1), alpha=0.1)
-    opt = optax.adam(schedule)
+    dt = jnp.result_type(float)
+    raw = to_raw(rig.segmentation).astype(dt)
+    first = out = call(raw)
+    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(steps, 1), alpha=0.1))
     state = opt.init(raw)
-    key = jax.random.key(seed)
+    scale = 1.0
     losses: list[float] = []
-    first = best = None
+    best = (0, raw, out)
     bar = tqdm(total=steps, desc="calibrate", unit="step", disable=not progress)
     for step in range(steps + 1):
-        out = call(raw, key)
+        if step > 0:
+            out = call(raw)
         losses.append(float(out.loss))
-        if first is None:
-            first = out
-        if best is None or losses[-1] < losses[best[0]]:
+        if losses[-1] < losses[best[0]]:
             best = (step, raw, out)
         if callback is not None:
             callback(step, losses[-1])
         if step == steps or step - best[0] >= patience:
             break
+        if losses[-1] > BACKTRACK * losses[best[0]]:
+            # The loss is piecewise smooth: a step landed where frames stop measuring. Go back
+            # to the best point, forget the momentum that carried us here, take smaller steps.
+            _, raw, out = best
+            state, scale = opt.init(raw), 0.5 * scale
         grad = out.grad
         if augment:
             noisy = call(
@@ -497,11 +593,10 @@ def calibrate(
             )
             grad = 0.5 * (grad + noisy.grad)
         updates, state = opt.update(grad, state, raw)
-        raw = optax.apply_updates(raw, updates)
+        raw = raw + scale * updates
         bar.set_postfix(loss=f"{losses[-1]:.4g}", best=f"{losses[best[0]]:.4g}")
         bar.update()
     bar.close()
-    assert first is not None and best is not None
     step_best, raw_best, out_best = best
     calibrated = Rig(
         wheel_radius_mm=rig.wheel_radius_mm,
@@ -541,7 +636,7 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--out", required=True, metavar="CALIBRATED.toml", help="rig file to write")
     p.add_argument(
-        "--steps", type=_positive_int, default=60, metavar="N", help="Adam steps (default: 60)"
+        "--steps", type=_positive_int, default=50, metavar="N", help="Adam steps (default: 50)"
     )
     p.add_argument(
         "--augment",
@@ -575,8 +670,8 @@ def run_cli(args: argparse.Namespace) -> int:
     )
     comment = (
         f"calibrated by `sinkjax calibrate {labels.name}` from {rig_path.name}: "
-        f"{len(frames.names)} frames, loss {result.losses[0]:.4g} -> "
-        f"{result.losses[result.best_step]:.4g}{', augmented' if args.augment else ''}"
+        f"{len(frames.names)} frames, loss {result.loss_before:.4g} -> "
+        f"{result.loss_after:.4g}{', augmented' if args.augment else ''}"
     )
     try:
         save_rig(result.rig, out, comment=comment)
