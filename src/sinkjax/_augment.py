@@ -23,10 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-# Relative channel gains of a black body between ~3000 K and ~6500 K, normalised to green and
-# linearised in the mired scale (1e6 / T): warmer light is redder and less blue. Per mired step
-# of 100 (about 6500 K -> 4000 K) red rises ~12 % and blue falls ~18 %.
-_MIRED_GAIN_PER_100 = (0.12, 0.0, -0.18)
+# Log gains (R, G, B) of the lamp per 100 mireds (1e6 / T) warmer, relative to green: from the
+# sRGB colours of black bodies at 6500 K (#fff9fd) and 4000 K (#ffd1a3), 96 mireds apart, red
+# over green rises by a factor 1.19 and blue over green falls by 0.77. Log-linear in mireds is
+# close to the Planckian locus over 3000-7000 K.
+MIRED_LOG_GAINS_PER_100 = (0.18, 0.0, -0.27)
 
 
 class AugmentConfig(eqx.Module):
@@ -70,7 +71,7 @@ def colour_temperature_gains(mired_shift: Float[Array, ""]) -> Float[Array, " 3"
     A Planckian-like shift: along the black-body locus red and blue move in opposite directions;
     the log gains are linear in mireds, which is close to the locus over 3000-6500 K.
     """
-    per = jnp.asarray(_MIRED_GAIN_PER_100, dtype=jnp.result_type(mired_shift, float))
+    per = jnp.asarray(MIRED_LOG_GAINS_PER_100, dtype=jnp.result_type(mired_shift, float))
     return jnp.exp(per * mired_shift / 100.0)
 
 

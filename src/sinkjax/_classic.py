@@ -50,12 +50,12 @@ from ._results import (
     BAD_IMAGE,
     BAD_RECT,
     FIT_FAILED,
-    NO_CONTACT,
     NO_WHEEL,
     OK,
     FrameResult,
     Overlay,
     failed,
+    no_contact,
 )
 from ._rig import HUE_SCALE_DEG, Rig, SegmentationParams
 
@@ -287,18 +287,7 @@ def estimate_classic(
         if r - rho[run].min() >= margin + 1.0 or np.ptp(uv[run, 0]) >= 0.05 * r
     ]
     if not runs:
-        return FrameResult(
-            image=name,
-            status=NO_CONTACT,
-            sinkage_mm=0.0,
-            theta1_deg=0.0,
-            theta2_deg=0.0,
-            center_x_px=cx,
-            center_y_px=cy,
-            radius_px=r,
-            message="the soil does not reach inside the rim (no wheel-soil boundary)",
-            overlay=overlay,
-        )
+        return no_contact(name, (cx, cy), r, overlay)
     idx = np.concatenate(runs)
     if refine:
         if uv[idx, 1].min() < 0.0:

@@ -68,6 +68,24 @@ class FrameResult:
         return [_cell(getattr(self, c)) for c in COLUMNS]
 
 
+def no_contact(
+    image: str, centre_px: tuple[float, float], radius_px: float, overlay: Overlay | None
+) -> FrameResult:
+    """Conventions §1: no contact is sinkage 0 and both angles 0, with no sigma."""
+    return FrameResult(
+        image=image,
+        status=NO_CONTACT,
+        sinkage_mm=0.0,
+        theta1_deg=0.0,
+        theta2_deg=0.0,
+        center_x_px=centre_px[0],
+        center_y_px=centre_px[1],
+        radius_px=radius_px,
+        message="the soil does not reach inside the rim (no wheel-soil boundary)",
+        overlay=overlay,
+    )
+
+
 def failed(image: str, status: str, message: str) -> FrameResult:
     """A row for a frame that produced no measurement."""
     return FrameResult(image=image, status=status, message=message)

@@ -38,10 +38,10 @@ class SegmentationParams(eqx.Module):
     temperature_sat: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.02)
 
     def as_dict(self) -> dict[str, float]:
-        return {name: float(getattr(self, name)) for name in _SEG_FIELDS}
+        return {name: float(getattr(self, name)) for name in SEG_FIELDS}
 
 
-_SEG_FIELDS = (
+SEG_FIELDS = (
     "p_d_hue",
     "p_a_hue",
     "p_d_sat",
@@ -118,10 +118,10 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     seg_data = data.get("segmentation", {})
     if not isinstance(seg_data, dict):
         raise RigError(f"{source}: [segmentation] must be a table")
-    unknown = set(seg_data) - set(_SEG_FIELDS)
+    unknown = set(seg_data) - set(SEG_FIELDS)
     if unknown:
         raise RigError(
-            f"{source}: unknown [segmentation] keys {sorted(unknown)}; known: {list(_SEG_FIELDS)}"
+            f"{source}: unknown [segmentation] keys {sorted(unknown)}; known: {list(SEG_FIELDS)}"
         )
     seg_kwargs: dict[str, Any] = {}
     for name, value in seg_data.items():

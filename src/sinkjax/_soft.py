@@ -136,9 +136,8 @@ def measure_from_mask(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty"))
-def _measure_batch(
-    images_u8: Array,
+def _measure_u8(
+    image_u8: Array,
     seg: SegmentationParams,
     rect: tuple[int, int, int, int],
     travel: str,
@@ -147,26 +146,6 @@ def _measure_batch(
 ) -> SoftEstimate:
     # The default float: float32, or float64 when jax_enable_x64 is on (one dtype throughout,
     # which the solver requires).
-    images = images_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
-    one = functools.partial(
-        measure,
-        rect=rect,
-        travel=travel,
-        wheel_radius_mm=wheel_radius_mm,
-        uncertainty=uncertainty,
-    )
-    return jax.vmap(one, in_axes=(0, None))(images, seg)
-
-
-@functools.partial(jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "uncertainty"))
-def _measure_one(
-    image_u8: Array,
-    seg: SegmentationParams,
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    uncertainty: UncertaintyModel | None = None,
-) -> SoftEstimate:
     image = image_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
     return measure(
         image,
@@ -175,6 +154,24 @@ def _measure_one(
         travel=travel,
         wheel_radius_mm=wheel_radius_mm,
         uncertainty=uncertainty,
+    )
+
+
+_STATIC = ("rect", "travel", "wheel_radius_mm", "uncertainty")
+_measure_one = jax.jit(_measure_u8, static_argnames=_STATIC)
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _measure_batch(
+    images_u8: Array,
+    seg: SegmentationParams,
+    rect: tuple[int, int, int, int],
+    travel: str,
+    wheel_radius_mm: float,
+    uncertainty: UncertaintyModel | None = None,
+) -> SoftEstimate:
+    return jax.vmap(lambda im: _measure_u8(im, seg, rect, travel, wheel_radius_mm, uncertainty))(
+        images_u8
     )
 
 
@@ -277,19 +274,7 @@ def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
         b_px=(bx, by) if status == R.OK else None,
     )
     if status == R.NO_CONTACT:
-        # Conventions §1: zeros. The fit has no boundary to be uncertain about: no sigma.
-        return R.FrameResult(
-            image=name,
-            status=status,
-            sinkage_mm=0.0,
-            theta1_deg=0.0,
-            theta2_deg=0.0,
-            center_x_px=cx,
-            center_y_px=cy,
-            radius_px=r,
-            overlay=overlay,
-            message="the soil does not reach the rim (no wheel-soil boundary inside the rim)",
-        )
+        return R.no_contact(name, (cx, cy), r, overlay)
     return R.FrameResult(
         image=name,
         status=status,

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ._geometry import travel_sign
-from ._rig import SegmentationParams
+from ._rig import SEG_FIELDS, SegmentationParams
 from ._segmentation import soft_open, wheel_mask
 from ._soft import _FIT_FAILED, SoftEstimate, measure_from_mask
 from ._uncertainty import UncertaintyModel
@@ -36,14 +36,6 @@ VALUE_NAMES = (
     "theta2_std_deg",
 )
 FIT_FAILED = _FIT_FAILED
-SEG_FIELDS = (
-    "p_d_hue",
-    "p_a_hue",
-    "p_d_sat",
-    "p_a_sat",
-    "temperature_hue_deg",
-    "temperature_sat",
-)
 
 
 def estimate_values(est: SoftEstimate) -> Float[Array, " 6"]:
