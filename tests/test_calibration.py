@@ -385,7 +385,8 @@ def test_augment_is_seeded_and_in_range() -> None:
 
 def test_augment_parts() -> None:
     warm = A.colour_temperature_gains(jnp.asarray(100.0))
-    np.testing.assert_allclose(warm, np.exp([0.12, 0.0, -0.18]), rtol=1e-6)
+    np.testing.assert_allclose(warm, np.exp(A.MIRED_LOG_GAINS_PER_100), rtol=1e-6)
+    assert warm[0] > 1.0 == warm[1] > warm[2]  # warmer: redder, less blue
     np.testing.assert_allclose(A.colour_temperature_gains(jnp.asarray(0.0)), 1.0)
     img = jnp.linspace(0.1, 0.9, 24 * 3).reshape(4, 6, 3)
     np.testing.assert_allclose(A.brightness_contrast(img, 1.0, 1.0), img, atol=1e-7)
