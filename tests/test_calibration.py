@@ -15,6 +15,7 @@ import types
 from pathlib import Path
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -145,6 +146,9 @@ def test_rig_problems_stop_before_work(
     small_set: Path, no_work: None, capsys: pytest.CaptureFixture[str]
 ) -> None:
     labels = write_labels(small_set, [["a.png", "1", "2", "3"]])
+    (small_set / "rig.toml").unlink()
+    assert main(["calibrate", str(labels), "--out", str(small_set / "o.toml")]) == 2
+    assert "pass --rig RIG.toml" in capsys.readouterr().err
     (small_set / "rig.toml").write_text("wheel_radius_mm = 100.0\n", encoding="utf-8")
     assert main(["calibrate", str(labels), "--out", str(small_set / "o.toml")]) == 2
     assert "confidence_rect" in capsys.readouterr().err
@@ -193,6 +197,35 @@ def test_raw_parameters_round_trip_and_stay_valid() -> None:
         d = C.from_raw(jnp.full(6, value, jnp.float32)).as_dict()
         assert 0 < d["p_d_hue"] < 1 < d["p_a_hue"] and 0 < d["p_d_sat"] < 1 < d["p_a_sat"]
         assert d["temperature_hue_deg"] > 0 and d["temperature_sat"] > 0
+
+
+def test_gradient_guard_changes_derivatives_at_zero_weight_only() -> None:
+    from sinkjax import _model
+
+    rng = np.random.default_rng(0)
+    w = jnp.asarray(rng.uniform(0, 1, 6)).at[::2].set(0.0)  # half the points have weight 0
+    ev = _model.Evidence(
+        x_px=jnp.asarray(rng.uniform(-50, 50, 6)),
+        y_px=jnp.asarray(rng.uniform(0, 50, 6)),
+        w_rim=w,
+        w_line=w[::-1],
+        w_a=w,
+        w_b=w[::-1],
+        sign=jnp.asarray(1.0),
+        start=jnp.zeros(_model.N_PARAMS),
+    )
+    p = jnp.asarray([1.0, 2.0, 40.0, 0.1, 20.0, 0.1, 20.0, -0.1, 20.0])
+
+    def total(fn, w_line):
+        return jnp.sum(fn(p, eqx.tree_at(lambda e: e.w_line, ev, w_line)) ** 3)
+
+    np.testing.assert_array_equal(C._residuals_safe(p, ev), C._RESIDUALS(p, ev))
+    g_safe = jax.grad(lambda wl: total(C._residuals_safe, wl))(ev.w_line)
+    g_raw = jax.grad(lambda wl: total(C._RESIDUALS, wl))(ev.w_line)
+    positive = np.asarray(ev.w_line) > 0
+    np.testing.assert_allclose(g_safe[positive], g_raw[positive], rtol=1e-12)
+    assert np.all(np.isfinite(np.asarray(g_safe)))
+    assert np.all(np.asarray(g_safe)[~positive] == 0.0)
 
 
 def test_pseudo_huber() -> None:

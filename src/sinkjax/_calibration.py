@@ -269,27 +269,34 @@ def _residuals_need_guard() -> bool:
     gradient of the fit multiplies inf by 0. The guard changes no value, only that derivative
     (inf -> 0), and only while the loss is traced; it is off once the model guards it itself.
     """
-    with jax.ensure_compile_time_eval():
-        z = jnp.zeros(3)
-        ev = _model.Evidence(
-            x_px=jnp.arange(3.0),
-            y_px=jnp.ones(3),
-            w_rim=z,
-            w_line=z,
-            w_a=z,
-            w_b=z,
-            sign=jnp.asarray(1.0),
-            start=jnp.ones(_model.N_PARAMS),
-        )
-        p = jnp.ones(_model.N_PARAMS)
-        g = jax.grad(lambda w: jnp.sum(_RESIDUALS(p, eqx.tree_at(lambda e: e.w_line, ev, w))))(z)
-        return not bool(jnp.all(jnp.isfinite(g)))
+    try:
+        with jax.ensure_compile_time_eval():
+            return _probe_residuals()
+    except Exception:  # the model changed shape: it is no longer the code this guard knows
+        return False
+
+
+def _probe_residuals() -> bool:
+    z = jnp.zeros(3)
+    ev = _model.Evidence(
+        x_px=jnp.arange(3.0),
+        y_px=jnp.ones(3),
+        w_rim=z,
+        w_line=z,
+        w_a=z,
+        w_b=z,
+        sign=jnp.asarray(1.0),
+        start=jnp.ones(_model.N_PARAMS),
+    )
+    p = jnp.ones(_model.N_PARAMS)
+    g = jax.grad(lambda w: jnp.sum(_RESIDUALS(p, eqx.tree_at(lambda e: e.w_line, ev, w))))(z)
+    return not bool(jnp.all(jnp.isfinite(g)))
 
 
 @contextlib.contextmanager
 def _finite_gradients() -> Iterator[None]:
     """While the loss is traced, let the fit use residuals with finite gradients at w = 0."""
-    if _fit.residuals is not _RESIDUALS or not _residuals_need_guard():
+    if getattr(_fit, "residuals", None) is not _RESIDUALS or not _residuals_need_guard():
         yield
         return
     _fit.residuals = _residuals_safe
@@ -658,6 +665,11 @@ def run_cli(args: argparse.Namespace) -> int:
     """``sinkjax calibrate``: validate everything, calibrate, write the rig, print a summary."""
     labels = Path(args.labels)
     rig_path = Path(args.rig) if args.rig else labels.parent / "rig.toml"
+    if not rig_path.is_file():
+        raise RigError(
+            f"rig file {str(rig_path)!r} does not exist; pass --rig RIG.toml or put the rig.toml "
+            "of these frames next to the labels file"
+        )
     rig = load_rig(rig_path)
     frames = read_labels(labels, rig)
     out = Path(args.out)
