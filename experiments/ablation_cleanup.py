@@ -22,7 +22,7 @@ import numpy as np
 from benchmark import RESULTS, make_frames, metrics
 from tqdm import tqdm
 
-from sinkjax._soft import _row, measure
+from sinkjax.soft.estimator import _row, measure
 
 
 def run(frames: list, open_radius_px: int) -> list:

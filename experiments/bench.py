@@ -1,7 +1,7 @@
 """Throughput and peak memory of the classic and soft methods (``make bench``).
 
 For each configuration -- classic at 640x480 and 1280x720, soft at both sizes with batch sizes 1,
-4 and 8 -- a fresh Python process renders a few synthetic frames (``sinkjax._synth``, not timed),
+4 and 8 -- a fresh Python process renders a few synthetic frames (``sinkjax.synth.render``, not timed),
 compiles (soft; timed separately), then measures N frames through the pipeline's batching
 (``iter_estimates``) and reports frames/s and its peak resident memory (``ru_maxrss``: the whole
 process, JAX runtime and compiled code included). One process per configuration, so each peak is
@@ -46,9 +46,9 @@ def _one(method: str, width: int, height: int, batch: int, n_frames: int) -> dic
     """Run one configuration in this process; returns its measurements."""
     import numpy as np
 
-    from sinkjax import _synth as S
-    from sinkjax._io import Frame
-    from sinkjax._pipeline import iter_estimates
+    from sinkjax.app.inputs import Frame
+    from sinkjax.app.pipeline import iter_estimates
+    from sinkjax import synth as S
 
     rng = np.random.default_rng(0)
     scenes = S.recording_scenes(rng, N_DISTINCT, width=width, height=height)

@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from sinkjax import _synth as S
-from sinkjax._classic import estimate_classic
-from sinkjax._results import FrameResult
-from sinkjax._rig import Rig
-from sinkjax._soft import estimate_batch
+from sinkjax.app.results import FrameResult
+from sinkjax.classic.estimator import estimate_classic
+from sinkjax.rig import Rig
+from sinkjax.soft.estimator import estimate_batch
+from sinkjax import synth as S
 
 SIZES = ((640, 480), (800, 600), (480, 360), (1280, 720))
 RESULTS = Path(__file__).parent / "results"

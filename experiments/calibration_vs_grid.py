@@ -31,11 +31,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sinkjax import _synth as S
-from sinkjax._augment import augment
-from sinkjax._calibration import Errors, LabelledFrames, calibrate, pseudo_huber
-from sinkjax._rig import Rig, SegmentationParams
-from sinkjax._soft import estimate_batch
+from sinkjax.calibration.augment import augment
+from sinkjax.calibration.calibrate import Errors, LabelledFrames, calibrate, pseudo_huber
+from sinkjax.rig import Rig, SegmentationParams
+from sinkjax.soft.estimator import estimate_batch
+from sinkjax import synth as S
 
 RESULTS = Path(__file__).parent / "results"
 PRESETS = ("shading", "dust", "cast", "lowlight")

@@ -1,8 +1,8 @@
-"""Accuracy of the classic pipeline (sinkjax._classic) on synthetic frames with exact truth.
+"""Accuracy of the classic pipeline (sinkjax.classic.estimator) on synthetic frames with exact truth.
 
 Renders several synthetic recordings (one camera set-up and rig each, all terrain kinds, some
 travelling left) of preset "clean" and of the "full" mix (lugs, shadows, specular highlights,
-JPEG), runs :func:`sinkjax._classic.estimate_classic` on every frame in both modes, the paper's
+JPEG), runs :func:`sinkjax.classic.estimator.estimate_classic` on every frame in both modes, the paper's
 method (``refine=False``, the default and ``sinkjax estimate --method classic``) and the
 sub-pixel refinement (``refine=True``), on the same frames, and reports per mode and preset:
 
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sinkjax._classic import estimate_classic
-from sinkjax._results import NO_CONTACT, OK
-from sinkjax._synth import recording_scenes, render, rig_for
+from sinkjax.app.results import NO_CONTACT, OK
+from sinkjax.classic.estimator import estimate_classic
+from sinkjax.synth.render import recording_scenes, render, rig_for
 
 FRAMES_PER_RECORDING = 10  # two cycles of the five terrain kinds
 SEED = 20240531

@@ -5,7 +5,7 @@
   15 mm high, a single lamp with its cast shadow), so every experiment shares one confidence
   rectangle and the soft method compiles once per image size.
 - The soil model: Bekker's static sinkage for the paper's Table 1 soil, a slip-sinkage factor,
-  and slip bulldozing (a pile ahead of the wheel, a rut behind it) as :class:`~sinkjax._synth.Scene`
+  and slip bulldozing (a pile ahead of the wheel, a rut behind it) as :class:`~sinkjax.synth.render.Scene`
   terrain fields.
 - :func:`measure`: the classic (paper) and soft methods on rendered frames -> :class:`Record` rows,
   saved as CSV in the cache folder (``exp_uncertainty`` pools them).
@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from sinkjax import _synth as S
-from sinkjax._rig import Rig
+from sinkjax.rig import Rig
+from sinkjax import synth as S
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -206,7 +206,7 @@ def paper_scene(setup: Setup) -> S.Scene:
     The paper's wheel: R = 140 mm, 28 lugs 15 mm high; a single lamp above-left with the wheel's
     cast shadow on the soil, mild sensor noise, blur and JPEG. At 640x480 the rim radius is 140 px
     (1 px = 1 mm); at 320x240 everything is halved. Every experiment varies only the terrain,
-    wheel phase and lighting of this scene, so :func:`sinkjax._synth.rig_for` gives one rig.
+    wheel phase and lighting of this scene, so :func:`sinkjax.synth.render.rig_for` gives one rig.
     """
     f = setup.width / 640.0
     r = 140.0 * f
@@ -253,7 +253,7 @@ def px_per_mm(scene: S.Scene) -> float:
 
 def place(scene: S.Scene, depth_mm: float, **terrain: Any) -> S.Scene:
     """``scene`` with the wheel's lowest point ``depth_mm`` below the FLAT soil level, plus the
-    given terrain fields (bumps, ruts, roughness; see :class:`sinkjax._synth.Scene`). The flat
+    given terrain fields (bumps, ruts, roughness; see :class:`sinkjax.synth.render.Scene`). The flat
     level is what the paper's displacement sensor measured sinkage from."""
     level = scene.centre_y_px + scene.radius_px - depth_mm * px_per_mm(scene)
     return dataclasses.replace(scene, soil_level_px=level, **terrain)
@@ -329,7 +329,7 @@ SOFT_BATCH = 8  # every soft call has this batch size: one compiled function per
 
 
 def _soft(frames: Sequence[Frame], rig: Rig) -> list[Any]:
-    from sinkjax._soft import estimate_batch
+    from sinkjax.soft.estimator import estimate_batch
 
     rows: list[Any] = []
     for i in range(0, len(frames), SOFT_BATCH):
@@ -341,7 +341,7 @@ def _soft(frames: Sequence[Frame], rig: Rig) -> list[Any]:
 
 
 def _classic(frames: Sequence[Frame], rig: Rig) -> list[Any]:
-    from sinkjax._classic import estimate_classic
+    from sinkjax.classic.estimator import estimate_classic
 
     return [estimate_classic(f.image, rig, f.name) for f in frames]
 

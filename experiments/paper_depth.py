@@ -19,7 +19,7 @@ from typing import Any
 import common as C
 import numpy as np
 
-from sinkjax import _synth as S
+from sinkjax import synth as S
 
 NAME = "paper_depth"
 DEPTH_RANGE_MM = (0.5, 40.0)

@@ -20,7 +20,7 @@ from typing import Any
 import common as C
 import numpy as np
 
-from sinkjax import _synth as S
+from sinkjax import synth as S
 
 NAME = "paper_precision"
 LOADS = (30, 90)

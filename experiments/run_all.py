@@ -276,8 +276,8 @@ def write_index(setup: C.Setup, seconds: float, failed: list[str]) -> Path:
         "one lamp). Every number below is produced by the scripts; the paper's numbers are "
         "copied from its text (Tables 2-3 and its claims).",
         "The classic method is this project's re-implementation of the paper's pipeline "
-        "(`sinkjax._classic.estimate_classic`, default options); the soft method is "
-        "`sinkjax._soft.estimate_batch` with the default rig. Errors are against exact "
+        "(`sinkjax.classic.estimator.estimate_classic`, default options); the soft method is "
+        "`sinkjax.soft.estimator.estimate_batch` with the default rig. Errors are against exact "
         "synthetic truth (Eqs. 1-3 on the true surface); the paper's own errors were against "
         "a displacement sensor and hand-measured angles on real images, so the paper column "
         "is context, not a like-for-like score.",

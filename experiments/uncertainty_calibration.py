@@ -17,8 +17,8 @@ import sys
 import numpy as np
 from benchmark import make_frames
 
-from sinkjax._soft import estimate_batch
-from sinkjax._uncertainty import UncertaintyModel
+from sinkjax.soft.estimator import estimate_batch
+from sinkjax.soft.uncertainty import UncertaintyModel
 
 
 def fit(err: np.ndarray, raw: np.ndarray) -> tuple[float, float]:

@@ -21,9 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sinkjax import _augment as A, _calibration as C
-from sinkjax._cli import main
-from sinkjax._rig import Rig, SegmentationParams, load_rig
+from sinkjax.app.cli import main
+from sinkjax.calibration import augment as A, calibrate as C
+from sinkjax.rig import Rig, SegmentationParams, load_rig
 
 
 def same_rig(a: Rig, b: Rig) -> bool:
@@ -200,7 +200,7 @@ def test_raw_parameters_round_trip_and_stay_valid() -> None:
 
 
 def test_gradient_guard_changes_derivatives_at_zero_weight_only() -> None:
-    from sinkjax import _model
+    from sinkjax.soft import model as _model
 
     rng = np.random.default_rng(0)
     w = jnp.asarray(rng.uniform(0, 1, 6)).at[::2].set(0.0)  # half the points have weight 0
@@ -440,7 +440,7 @@ def test_augment_parts() -> None:
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """3 synthetic 'dust' frames (160x120) where the default thresholds are far off."""
-    from sinkjax._synth import write_recording
+    from sinkjax.synth.render import write_recording
 
     out = write_recording(
         tmp_path_factory.mktemp("dust"),
@@ -536,7 +536,7 @@ def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Pat
 
 
 def test_calibrated_rig_round_trips(recording: Path, cli_run: tuple[Path, str]) -> None:
-    from sinkjax._rig import save_rig
+    from sinkjax.rig import save_rig
 
     out = cli_run[0]
     rig = load_rig(out)

@@ -1,4 +1,4 @@
-"""The classic pipeline (sinkjax._classic) against independent references and drawn wheels.
+"""The classic pipeline (sinkjax.classic.estimator) against independent references and drawn wheels.
 
 The drawn wheels are supersampled analytic scenes (exact coverage anti-aliasing), so their rim,
 soil line, z0 and angles are known exactly; no synthetic renderer is involved. Both modes are
@@ -13,15 +13,15 @@ import math
 import numpy as np
 import pytest
 
-from sinkjax._classic import (
+from sinkjax.app.results import BAD_IMAGE, BAD_RECT, FIT_FAILED, NO_CONTACT, NO_WHEEL, OK
+from sinkjax.classic.estimator import (
     _geometry_padded,
     confidence_means,
     estimate_classic,
     hard_mask,
     rgb_to_hsi_np,
 )
-from sinkjax._results import BAD_IMAGE, BAD_RECT, FIT_FAILED, NO_CONTACT, NO_WHEEL, OK
-from sinkjax._rig import Rig, SegmentationParams
+from sinkjax.rig import Rig, SegmentationParams
 
 WHEEL_RGB = (200, 40, 35)  # red: hue straddles 0/360
 SOIL_RGB = (190, 165, 120)

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import sinkjax
-from sinkjax import _pipeline
-from sinkjax._cli import COMMANDS, main
-from sinkjax._results import COLUMNS, FrameResult, Overlay
+from sinkjax.app import pipeline as _pipeline
+from sinkjax.app.cli import COMMANDS, main
+from sinkjax.app.results import COLUMNS, FrameResult, Overlay
 
 RIG_FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]
 
@@ -211,7 +211,7 @@ def test_method_exception_becomes_error_row(tmp_path, monkeypatch, capsys):
 
 
 def test_soft_unavailable_is_clear(tmp_path, monkeypatch, capsys):
-    monkeypatch.setitem(sys.modules, "sinkjax._soft", None)  # import fails
+    monkeypatch.setitem(sys.modules, "sinkjax.soft.estimator", None)  # import fails
     png(tmp_path / "a.png")
     code = main(["estimate", str(tmp_path / "a.png"), *RIG_FLAGS, "--out", str(tmp_path / "r")])
     assert code == 2
@@ -231,7 +231,7 @@ def test_subcommand_registry_and_usage(capsys):
 
 def test_console_entry_point_no_traceback(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "sinkjax._cli", "estimate", str(tmp_path / "missing.png")],
+        [sys.executable, "-m", "sinkjax.app.cli", "estimate", str(tmp_path / "missing.png")],
         capture_output=True,
         text=True,
         timeout=120,
@@ -256,12 +256,10 @@ def _fake_synth(monkeypatch) -> list[dict]:
                 w.writerow([f"frame_{i:03d}.png", float(i), 30.0, 20.0])
         return out
 
-    module = types.ModuleType("sinkjax._synth")
+    module = types.ModuleType("sinkjax.synth")
     module.write_recording = write_recording  # type: ignore[attr-defined]
     module.PRESETS = {"full": None, "flat": None}  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "sinkjax._synth", module)
-    # `from . import _synth` finds the package attribute first (sinkjax/__init__ imports it).
-    monkeypatch.setattr(sinkjax, "_synth", module)
+    monkeypatch.setitem(sys.modules, "sinkjax.synth", module)
     return calls
 
 

@@ -10,10 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sinkjax._classic import hard_mask, rgb_to_hsi_np
-from sinkjax._colour import circular_mean_deg, rgb_to_hsi
-from sinkjax._rig import SegmentationParams
-from sinkjax._segmentation import confidence_means, smooth, soft_mask, soft_open
+from sinkjax.classic.estimator import hard_mask, rgb_to_hsi_np
+from sinkjax.rig import SegmentationParams
+from sinkjax.soft.colour import circular_mean_deg, rgb_to_hsi
+from sinkjax.soft.segmentation import confidence_means, smooth, soft_mask, soft_open
 
 
 def textbook_hsi(r: float, g: float, b: float) -> tuple[float, float, float]:

@@ -114,7 +114,7 @@ def test_soil_model_matches_bekker_by_hand() -> None:
 
 def test_terrain_design_orders_true_sinkage_as_the_paper_says(tmp_path: Path) -> None:
     """Raised terrain: true sinkage > the flat-level sensor value; hollow, rough: less."""
-    from sinkjax import _synth as S
+    from sinkjax import synth as S
 
     c = _module("common")
     terrain = _module("paper_terrain")
@@ -133,7 +133,7 @@ def test_terrain_design_orders_true_sinkage_as_the_paper_says(tmp_path: Path) ->
 
 def test_every_experiment_scene_has_one_rig(tmp_path: Path) -> None:
     """Terrain and lighting change nothing the rig depends on: one compile per image size."""
-    from sinkjax import _synth as S
+    from sinkjax import synth as S
 
     c = _module("common")
     lighting = _module("exp_lighting")

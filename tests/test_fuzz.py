@@ -28,10 +28,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from sinkjax import _pipeline
-from sinkjax._cli import main
-from sinkjax._io import MIN_IMAGE_SIDE_PX
-from sinkjax._results import COLUMNS, FrameResult
+from sinkjax.app import pipeline as _pipeline
+from sinkjax.app.cli import main
+from sinkjax.app.inputs import MIN_IMAGE_SIDE_PX
+from sinkjax.app.results import COLUMNS, FrameResult
 
 # A rectangle that fits frames of at least 28x18 px: narrower frames are "off the rectangle".
 RECT = (20, 10, 8, 8)
@@ -532,7 +532,7 @@ def test_real_soft_estimator_on_awkward_frames(tmp_path):
         [
             sys.executable,
             "-m",
-            "sinkjax._cli",
+            "sinkjax.app.cli",
             "estimate",
             *paths,
             *RIG_FLAGS,

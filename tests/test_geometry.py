@@ -1,4 +1,4 @@
-"""Eqs. 1-3 (sinkjax._geometry) against hand-computed cases and the paper's own formulas."""
+"""Eqs. 1-3 (sinkjax.geometry) against hand-computed cases and the paper's own formulas."""
 
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from sinkjax._io import (
+from sinkjax.app.inputs import (
     Frame,
     InputError,
     check_rect,
@@ -21,11 +21,11 @@ from sinkjax._io import (
     resolve_rig,
     to_rgb8,
 )
-from sinkjax._overlay import OverlayWriter, draw_overlay, overlay_name
-from sinkjax._pipeline import estimate_paths, estimate_stream, iter_estimates, load_method
-from sinkjax._plots import match_truth, plot_accuracy
-from sinkjax._results import FrameResult, Overlay
-from sinkjax._rig import Rig, RigError
+from sinkjax.app.overlay import OverlayWriter, draw_overlay, overlay_name
+from sinkjax.app.pipeline import estimate_paths, estimate_stream, iter_estimates, load_method
+from sinkjax.app.plots import match_truth, plot_accuracy
+from sinkjax.app.results import FrameResult, Overlay
+from sinkjax.rig import Rig, RigError
 
 RIG = Rig(wheel_radius_mm=100.0, confidence_rect=(2, 2, 4, 4), travel="right")
 
@@ -406,7 +406,7 @@ def test_plot_accuracy_and_matching(tmp_path, monkeypatch):
         ["rec/frame_2.png", "no_wheel", "", "", "", "", "", ""] + [""] * 3 + ["lost"],
         ["elsewhere/frame_3.png", "ok", "13", "", "33", "", "23", ""] + [""] * 4,
     ]
-    from sinkjax._results import COLUMNS
+    from sinkjax.app.results import COLUMNS
 
     with open("results.csv", "w", newline="") as f:
         w = csv.writer(f)

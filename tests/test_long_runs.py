@@ -16,11 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from sinkjax import _pipeline
-from sinkjax._cli import main
-from sinkjax._io import FrameSelection, count_frames, expand_paths, iter_frames
-from sinkjax._results import COLUMNS, FrameResult
-from sinkjax._smoothing import SMOOTH_COLUMNS
+from sinkjax.app import pipeline as _pipeline
+from sinkjax.app.cli import main
+from sinkjax.app.inputs import FrameSelection, count_frames, expand_paths, iter_frames
+from sinkjax.app.results import COLUMNS, FrameResult
+from sinkjax.app.smoothing import SMOOTH_COLUMNS
 
 RIG_FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]
 
@@ -211,7 +211,7 @@ _KILLABLE = textwrap.dedent(
     """
     import sys, time
     sys.path.insert(0, {tests!r})
-    from sinkjax import _pipeline
+    from sinkjax.app import pipeline as _pipeline
     from test_long_runs import fake_rows
 
     def slow(images, rig, names):
@@ -219,7 +219,7 @@ _KILLABLE = textwrap.dedent(
         return fake_rows(images, rig, names)
 
     _pipeline._LOADERS["classic"] = lambda: slow
-    from sinkjax._cli import main
+    from sinkjax.app.cli import main
     sys.exit(main(sys.argv[1:]))
     """
 )

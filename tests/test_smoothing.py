@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from sinkjax._results import COLUMNS
-from sinkjax._smoothing import (
+from sinkjax.app.results import COLUMNS
+from sinkjax.app.smoothing import (
     SMOOTH_COLUMNS,
     SmoothingOptions,
     rts_random_walk,

@@ -9,13 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sinkjax import _synth as S
-from sinkjax._fit import fit
-from sinkjax._geometry import equivalent_line
-from sinkjax._model import Evidence, measurements
-from sinkjax._rig import Rig, SegmentationParams
-from sinkjax._soft import STATUS_CODES, estimate_batch, measure
-from sinkjax._uncertainty import UncertaintyModel, covariance, measurement_std
+from sinkjax.geometry import equivalent_line
+from sinkjax.rig import Rig, SegmentationParams
+from sinkjax.soft.estimator import STATUS_CODES, estimate_batch, measure
+from sinkjax.soft.fit import fit
+from sinkjax.soft.model import Evidence, measurements
+from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
+from sinkjax import synth as S
 
 W, H = 320, 240
 

@@ -9,14 +9,28 @@ OpenCV pipeline, ``_synth`` the renderer with exact truth, and ``_io``/``_pipeli
 the command line. The optional ``sinkjax.torch`` holds the PyTorch/kornia side.
 """
 
-from ._calibration import (
+from .app.inputs import read_image as read_image
+from .app.overlay import draw_overlay as draw_overlay
+from .app.pipeline import (
+    estimate_paths as estimate_paths,
+    estimate_stream as estimate_stream,
+    estimate_to_csv as estimate_to_csv,
+)
+from .app.plots import plot_accuracy as plot_accuracy, plot_series as plot_series
+from .app.results import (
+    COLUMNS as COLUMNS,
+    FrameResult as FrameResult,
+    Overlay as Overlay,
+    ResultsWriter as ResultsWriter,
+)
+from .app.smoothing import smooth_csv as smooth_csv
+from .calibration.calibrate import (
     LabelError as LabelError,
     calibrate as calibrate,
     read_labels as read_labels,
 )
-from ._classic import estimate_classic as estimate_classic, rgb_to_hsi_np as rgb_to_hsi_np
-from ._colour import circular_mean_deg as circular_mean_deg, rgb_to_hsi as rgb_to_hsi
-from ._geometry import (
+from .classic.estimator import estimate_classic as estimate_classic, rgb_to_hsi_np as rgb_to_hsi_np
+from .geometry import (
     SinkageGeometry as SinkageGeometry,
     entry_angle_rad as entry_angle_rad,
     equivalent_line as equivalent_line,
@@ -27,21 +41,7 @@ from ._geometry import (
     sinkage_px as sinkage_px,
     to_wheel_frame as to_wheel_frame,
 )
-from ._io import read_image as read_image
-from ._overlay import draw_overlay as draw_overlay
-from ._pipeline import (
-    estimate_paths as estimate_paths,
-    estimate_stream as estimate_stream,
-    estimate_to_csv as estimate_to_csv,
-)
-from ._plots import plot_accuracy as plot_accuracy, plot_series as plot_series
-from ._results import (
-    COLUMNS as COLUMNS,
-    FrameResult as FrameResult,
-    Overlay as Overlay,
-    ResultsWriter as ResultsWriter,
-)
-from ._rig import (
+from .rig import (
     Rig as Rig,
     RigError as RigError,
     SegmentationParams as SegmentationParams,
@@ -49,19 +49,20 @@ from ._rig import (
     rig_to_toml as rig_to_toml,
     save_rig as save_rig,
 )
-from ._segmentation import (
-    confidence_means as confidence_means,
-    soft_mask as soft_mask,
-    wheel_mask as wheel_mask,
-)
-from ._smoothing import smooth_csv as smooth_csv
-from ._soft import (
+from .soft.colour import circular_mean_deg as circular_mean_deg, rgb_to_hsi as rgb_to_hsi
+from .soft.estimator import (
     SoftEstimate as SoftEstimate,
     estimate_batch as estimate_batch,
     measure as measure,
     measure_from_mask as measure_from_mask,
 )
-from ._synth import (
+from .soft.segmentation import (
+    confidence_means as confidence_means,
+    soft_mask as soft_mask,
+    wheel_mask as wheel_mask,
+)
+from .soft.uncertainty import UncertaintyModel as UncertaintyModel
+from .synth.render import (
     Scene as Scene,
     Truth as Truth,
     random_scene as random_scene,
@@ -70,6 +71,5 @@ from ._synth import (
     rig_for as rig_for,
     write_recording as write_recording,
 )
-from ._uncertainty import UncertaintyModel as UncertaintyModel
 
 __version__ = "0.1.0"

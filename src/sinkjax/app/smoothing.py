@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float
 
-from ._results import COLUMNS, NO_CONTACT, OK, _cell
+from .results import COLUMNS, NO_CONTACT, OK, _cell
 
 # (value column, std column, smoothed column, smoothed std column, unit)
 QUANTITIES = (

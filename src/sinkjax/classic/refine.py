@@ -15,7 +15,7 @@ measured:
   end direction onto the rim (:func:`end_on_rim`).
 
 (The fifth, failing loudly when the outline dips inside the rim above O, is a check in
-:func:`sinkjax._classic.estimate_classic`.)
+:func:`sinkjax.classic.estimator.estimate_classic`.)
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import math
 import cv2
 import numpy as np
 
-from ._classic_outline import fill_holes, fit_circle, off_border, wheel_outline
+from .outline import fill_holes, fit_circle, off_border, wheel_outline
 
 
 def fill_cut_holes(

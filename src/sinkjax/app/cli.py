@@ -14,10 +14,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import ModuleType
 
-from ._io import FrameSelection, InputError, expand_paths, parse_rect, resolve_rig
-from ._pipeline import MethodUnavailable, ResumeError, estimate_to_csv, load_method
-from ._rig import RigError
-from ._smoothing import SmoothingOptions
+from ..rig import RigError
+from .inputs import FrameSelection, InputError, expand_paths, parse_rect, resolve_rig
+from .pipeline import MethodUnavailable, ResumeError, estimate_to_csv, load_method
+from .smoothing import SmoothingOptions
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -153,10 +153,14 @@ def _add_synth(p: argparse.ArgumentParser) -> None:
 
 def _load_synth() -> ModuleType:
     try:
-        from . import _synth
+        import importlib
+
+        synth = importlib.import_module("sinkjax.synth")
     except ImportError as e:
-        raise UsageError(f"the synthetic renderer (sinkjax._synth) is not available: {e}") from e
-    return _synth
+        raise UsageError(
+            f"the synthetic renderer (sinkjax.synth.render) is not available: {e}"
+        ) from e
+    return synth
 
 
 def _run_synth(args: argparse.Namespace) -> int:
@@ -195,7 +199,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from ._demo import run_demo
+    from .demo import run_demo
 
     _load_synth()
     try:
@@ -219,7 +223,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 def _add_smoothing_options(p: argparse.ArgumentParser) -> None:
-    from . import _smoothing as S
+    from . import smoothing as S
 
     g = p.add_argument_group(
         "smoothing (random walk per quantity, Kalman filter + RTS smoother over the frames)"
@@ -312,7 +316,7 @@ def _long_run_options(
 
 
 def _add_smooth(p: argparse.ArgumentParser) -> None:
-    from ._smoothing import SMOOTH_COLUMNS
+    from .smoothing import SMOOTH_COLUMNS
 
     p.description = (
         "Add smoothed sinkage, θ1 and θ2 with their one-sigma after the 12 standard columns "
@@ -329,7 +333,7 @@ def _add_smooth(p: argparse.ArgumentParser) -> None:
 
 
 def _run_smooth(args: argparse.Namespace) -> int:
-    from ._smoothing import NotAResultsCsv, smooth_csv
+    from .smoothing import NotAResultsCsv, smooth_csv
 
     options = _smoothing_options(args)
     try:
@@ -356,7 +360,7 @@ def _add_plot(p: argparse.ArgumentParser) -> None:
 def _run_plot(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ._plots import plot_series
+    from .plots import plot_series
 
     options = _smoothing_options(args)
     out = args.out or str(Path(args.results).with_suffix(".png"))
@@ -381,8 +385,8 @@ COMMANDS: dict[str, Command] = {
     # calibrate lives in _calibration (parse + run); imported when the parser is built.
     "calibrate": Command(
         "tune the segmentation thresholds to a few labelled frames; writes a rig file",
-        lambda p: __import__("sinkjax._calibration", fromlist=["_"]).add_cli_arguments(p),
-        lambda a: __import__("sinkjax._calibration", fromlist=["_"]).run_cli(a),
+        lambda p: __import__("sinkjax.calibration.calibrate", fromlist=["_"]).add_cli_arguments(p),
+        lambda a: __import__("sinkjax.calibration.calibrate", fromlist=["_"]).run_cli(a),
     ),
     "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
     "smooth": Command("add Kalman/RTS-smoothed columns to a results CSV", _add_smooth, _run_smooth),
@@ -391,7 +395,7 @@ COMMANDS: dict[str, Command] = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from .. import __version__
 
     parser = argparse.ArgumentParser(
         prog="sinkjax",

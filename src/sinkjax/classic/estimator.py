@@ -6,11 +6,11 @@
 2. RGB -> HSI (:func:`rgb_to_hsi_np`, the textbook arccos formula, not OpenCV's HSV);
 3. H_w, S_w over the rectangle (Eqs. 4-5, :func:`confidence_means`), H and S ranges from P_a/P_d,
    binary image (:func:`hard_mask`), then dilation, erosion, area filtering and filling of the
-   enclosed holes (:mod:`sinkjax._classic_outline`);
+   enclosed holes (:mod:`sinkjax.classic.outline`);
 4. the wheel outline (external contour, integer pixel centres), a 3-D Hough transform of it into
    (cx, cy, r) space for the rim circle, and the wheel-soil boundary = outline points closer to O
    than r (less a margin for the outline's pixel staircase along the rim);
-5. Eqs. 1-3 (:func:`sinkjax._geometry.geometry_from_boundary`): plain least squares of the
+5. Eqs. 1-3 (:func:`sinkjax.geometry.geometry_from_boundary`): plain least squares of the
    boundary points, A and B the boundary's extreme points on the entry and exit sides.
 
 The hue band is circular (see ``_rig.HUE_SCALE_DEG``), the Hough rim is the inner envelope of the
@@ -19,7 +19,7 @@ short stretch are rim noise, not soil (the paper extracts the boundary "accordin
 morphological features"); otherwise this is the paper's method, the baseline that every other
 estimator is measured against.
 
-``refine=True`` adds what makes it measure well (:mod:`sinkjax._classic_refine`): lightening holes
+``refine=True`` adds what makes it measure well (:mod:`sinkjax.classic.refine`): lightening holes
 cut open by the soil are filled from the intact ones' pattern, the outline is located to
 sub-pixel precision on the colour profile and the rim refitted there, boundary points are weighted
 by their x-extent in Eq. 1, A and B are carried along the boundary's end direction onto the rim,
@@ -34,19 +34,7 @@ import math
 import jax
 import numpy as np
 
-from ._classic_outline import (
-    fill_holes,
-    hough_rim,
-    off_border,
-    refine_rim,
-    rim_scatter_px,
-    runs_of,
-    wheel_outline,
-    wheel_region,
-)
-from ._classic_refine import ends_on_rim, refined_outline, x_extent_weights
-from ._geometry import SinkageGeometry, geometry_from_boundary, travel_sign
-from ._results import (
+from ..app.results import (
     BAD_IMAGE,
     BAD_RECT,
     FIT_FAILED,
@@ -57,7 +45,19 @@ from ._results import (
     failed,
     no_contact,
 )
-from ._rig import HUE_SCALE_DEG, Rig, SegmentationParams
+from ..geometry import SinkageGeometry, geometry_from_boundary, travel_sign
+from ..rig import HUE_SCALE_DEG, Rig, SegmentationParams
+from .outline import (
+    fill_holes,
+    hough_rim,
+    off_border,
+    refine_rim,
+    rim_scatter_px,
+    runs_of,
+    wheel_outline,
+    wheel_region,
+)
+from .refine import ends_on_rim, refined_outline, x_extent_weights
 
 # Plausible rim radius as a fraction of min(H, W): a wheel that fills less or more of the frame is
 # not the camera set-up this method is for.
@@ -198,7 +198,7 @@ def estimate_classic(
 
     ``image``: (H, W, 3) uint8 RGB; ``rig``: R (mm), confidence rectangle, travel and the P_d/P_a
     of ``rig.segmentation``. ``refine=False`` (the default) is the paper's method on the integer
-    pixel outline; ``refine=True`` adds the refinements of :mod:`sinkjax._classic_refine` (module
+    pixel outline; ``refine=True`` adds the refinements of :mod:`sinkjax.classic.refine` (module
     docstring). Returns a FrameResult: status ``ok`` or ``no_contact`` with sinkage (mm),
     theta1/theta2 (degrees), rim centre and radius (image px) and an overlay (rim, boundary
     points, equivalent-line ends, A, B in image px, of whichever mode ran); or ``bad_image`` /

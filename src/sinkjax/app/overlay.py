@@ -13,8 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ._results import NO_CONTACT, OK, FrameResult
-from ._rig import Rig
+from ..rig import Rig
+from .results import NO_CONTACT, OK, FrameResult
 
 # RGB colours (the image is drawn in RGB and converted to BGR only when written).
 _RIM = (255, 215, 0)

@@ -8,8 +8,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ._results import NO_CONTACT, OK
-from ._smoothing import SmoothingOptions
+from .results import NO_CONTACT, OK
+from .smoothing import SmoothingOptions
 
 QUANTITIES = (
     # (results column, std column, truth column, label, unit)
@@ -186,7 +186,7 @@ def plot_series(
     from matplotlib.figure import Figure
     from matplotlib.transforms import blended_transform_factory
 
-    from ._smoothing import QUANTITIES as SMOOTHED, read_results, smooth_rows
+    from .smoothing import QUANTITIES as SMOOTHED, read_results, smooth_rows
 
     header, rows = read_results(results_csv)
     x, xlabel = _frame_axis([r["image"] for r in rows])

@@ -5,7 +5,7 @@ image -> "dilation, erosion, area filtering and so on" -> outline of the wheel a
 -> the outline points closer to O than r), with the care that a pixel outline needs: the Hough
 votes go along the outline's inward normal, and its peak is polished by a least-squares fit that
 keeps only the inner envelope, so lugs never pull the rim outwards. The refinements beyond the
-paper (sub-pixel edges, cut-open holes, ...) live in :mod:`sinkjax._classic_refine`.
+paper (sub-pixel edges, cut-open holes, ...) live in :mod:`sinkjax.classic.refine`.
 """
 
 from __future__ import annotations

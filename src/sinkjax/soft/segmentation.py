@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._colour import circular_mean_deg, rgb_to_hsi, wrap_deg
-from ._rig import HUE_SCALE_DEG, SegmentationParams
+from ..rig import HUE_SCALE_DEG, SegmentationParams
+from .colour import circular_mean_deg, rgb_to_hsi, wrap_deg
 
 
 def confidence_means(

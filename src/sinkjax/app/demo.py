@@ -7,9 +7,9 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
-from ._io import RIG_FILENAME, resolve_rig
-from ._pipeline import RunSummary, estimate_to_csv
-from ._plots import Matched, match_truth, number, plot_accuracy
+from .inputs import RIG_FILENAME, resolve_rig
+from .pipeline import RunSummary, estimate_to_csv
+from .plots import Matched, match_truth, number, plot_accuracy
 
 DEMO_FRAMES = 12
 DEMO_SEED = 0
@@ -105,7 +105,7 @@ def run_demo(
     Writes ``results.csv``, ``overlays/`` and ``accuracy.png`` in ``out_dir``. Raises
     MethodUnavailable if ``method`` cannot be imported.
     """
-    from ._synth import write_recording
+    from ..synth.render import write_recording
 
     out = Path(out_dir)
     recording = Path(

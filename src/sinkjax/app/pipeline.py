@@ -24,7 +24,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ._io import (
+from ..rig import Rig
+from .inputs import (
     ALL_FRAMES,
     Frame,
     FrameSelection,
@@ -37,8 +38,8 @@ from ._io import (
     iter_frames,
     resolve_rig,
 )
-from ._overlay import OverlayVideoWriter, OverlayWriter
-from ._results import (
+from .overlay import OverlayVideoWriter, OverlayWriter
+from .results import (
     BAD_IMAGE,
     BAD_RECT,
     COLUMNS,
@@ -49,8 +50,7 @@ from ._results import (
     ResultsWriter,
     failed,
 )
-from ._rig import Rig
-from ._smoothing import SMOOTH_COLUMNS, SmoothingOptions, smooth_csv
+from .smoothing import SMOOTH_COLUMNS, SmoothingOptions, smooth_csv
 
 log = logging.getLogger("sinkjax")
 
@@ -65,11 +65,11 @@ class MethodUnavailable(RuntimeError):
 
 def _classic_batch() -> BatchMethod:
     try:
-        module = importlib.import_module("sinkjax._classic")
+        module = importlib.import_module("sinkjax.classic.estimator")
         estimate_classic = module.estimate_classic
     except (ImportError, AttributeError) as e:
         raise MethodUnavailable(
-            f"the classic method (sinkjax._classic.estimate_classic) is not available: {e}"
+            f"the classic method (sinkjax.classic.estimator.estimate_classic) is not available: {e}"
         ) from e
 
     def run(images: list[np.ndarray], rig: Rig, names: list[str]) -> list[FrameResult]:
@@ -82,11 +82,11 @@ def _classic_batch() -> BatchMethod:
 
 def _soft_batch() -> BatchMethod:
     try:
-        module = importlib.import_module("sinkjax._soft")
+        module = importlib.import_module("sinkjax.soft.estimator")
         estimate_batch: BatchMethod = module.estimate_batch
     except (ImportError, AttributeError) as e:
         raise MethodUnavailable(
-            "the soft method (sinkjax._soft.estimate_batch) is not available in this install "
+            "the soft method (sinkjax.soft.estimator.estimate_batch) is not available in this install "
             f"({e}); use --method classic, or reinstall sinkjax"
         ) from e
     return estimate_batch
@@ -407,7 +407,7 @@ def estimate_to_csv(
     annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
     :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
     the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
-    smoothed columns (:mod:`sinkjax._smoothing`). ``progress``: a progress bar (frames/s, ETA)
+    smoothed columns (:mod:`sinkjax.app.smoothing`). ``progress``: a progress bar (frames/s, ETA)
     on stderr when it is a terminal. Rows already written stay if the run is interrupted.
     Raises InputError / ValueError / ResumeError / MethodUnavailable / OSError before the first
     frame for unusable arguments.

@@ -20,7 +20,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._geometry import entry_angle_rad, exit_angle_rad, sinkage_px
+from ..geometry import entry_angle_rad, exit_angle_rad, sinkage_px
 
 N_PARAMS = 9
 PARAM_NAMES = ("cx", "cy", "r", "k", "b", "alpha_a", "c_a", "alpha_b", "c_b")

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._model import N_PARAMS, Evidence, measurements, residuals
+from .model import N_PARAMS, Evidence, measurements, residuals
 
 
 class UncertaintyModel(eqx.Module):

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._segmentation import smooth
+from .segmentation import smooth
 
 # A ridge must be at least this strong (mask units per pixel) to count as an edge point at all;
 # the soft weight then ramps up around EDGE_LEVEL.

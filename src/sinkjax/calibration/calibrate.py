@@ -37,12 +37,12 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
-from . import _fit, _model
-from ._augment import DEFAULT_CONFIG, AugmentConfig, augment
-from ._geometry import travel_sign
-from ._rig import Rig, RigError, SegmentationParams, load_rig, save_rig
-from ._segmentation import wheel_mask
-from ._soft import MIN_BOUNDARY_POINTS, STATUS_CODES, measure
+from ..geometry import travel_sign
+from ..rig import Rig, RigError, SegmentationParams, load_rig, save_rig
+from ..soft import fit as _fit, model as _model
+from ..soft.estimator import MIN_BOUNDARY_POINTS, STATUS_CODES, measure
+from ..soft.segmentation import wheel_mask
+from .augment import DEFAULT_CONFIG, AugmentConfig, augment
 
 LABEL_COLUMNS = ("image", "sinkage_mm", "theta1_deg", "theta2_deg")
 QUANTITIES = LABEL_COLUMNS[1:]
@@ -87,7 +87,7 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
     unreadable image, a number that does not parse or is out of range, no measured cell at all,
     images of different sizes, or a confidence rectangle of ``rig`` that lies off the images.
     """
-    from ._io import read_image
+    from ..app.inputs import read_image
 
     p = Path(path)
     if not p.is_file():

@@ -15,10 +15,10 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._geometry import equivalent_line
-from ._hough import Circle
-from ._model import Evidence, residuals
-from ._outline import Outline
+from ..geometry import equivalent_line
+from .hough import Circle
+from .model import Evidence, residuals
+from .outline import Outline
 
 # Band around the rim (px) that counts as rim evidence, and the gap kept free between the rim
 # and the boundary points (where the soil edge and the rim edge meet, neither is clean).

@@ -1,15 +1,15 @@
 """The JAX half of the PyTorch bridge: the soft estimator driven by a mask someone else computed.
 
-:func:`sinkjax._soft.measure` segments the image itself (HSI thresholds). A learned segmenter (a
+:func:`sinkjax.soft.estimator.measure` segments the image itself (HSI thresholds). A learned segmenter (a
 torch network, say) supplies its own soft mask instead, through
-:func:`sinkjax._soft.measure_from_mask` (everything after the segmentation step; ``measure`` is
+:func:`sinkjax.soft.estimator.measure_from_mask` (everything after the segmentation step; ``measure`` is
 ``measure_from_mask(image, wheel_mask(image, seg, rect))``). No torch here: :mod:`sinkjax.torch`
 turns these batched, jitted functions into a ``torch.autograd.Function``.
 
 Batched functions take torch's layout, images ``(B, 3, H, W)`` and masks ``(B, 1, H, W)``, so the
 tensors can cross by DLPack without a copy; the transpose to channel-last happens inside XLA.
 They return ``values (B, 6)``: z0 (mm), theta1 (deg), theta2 (deg) and their one-sigma, in that
-order, and ``status (B,)`` (indices into :data:`sinkjax._soft.STATUS_CODES`).
+order, and ``status (B,)`` (indices into :data:`sinkjax.soft.estimator.STATUS_CODES`).
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ._geometry import travel_sign
-from ._rig import SEG_FIELDS, SegmentationParams
-from ._segmentation import soft_open, wheel_mask
-from ._soft import _FIT_FAILED, SoftEstimate, measure_from_mask
-from ._uncertainty import UncertaintyModel
+from ..geometry import travel_sign
+from ..rig import SEG_FIELDS, SegmentationParams
+from ..soft.estimator import _FIT_FAILED, SoftEstimate, measure_from_mask
+from ..soft.segmentation import soft_open, wheel_mask
+from ..soft.uncertainty import UncertaintyModel
 
 VALUE_NAMES = (
     "sinkage_mm",

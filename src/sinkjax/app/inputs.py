@@ -24,8 +24,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._results import BAD_IMAGE, UNREADABLE
-from ._rig import Rig, RigError, rig_from_dict
+from ..rig import Rig, RigError, rig_from_dict
+from .results import BAD_IMAGE, UNREADABLE
 
 log = logging.getLogger("sinkjax")
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._outline import Outline
+from .outline import Outline
 
 CENTRE_BIN_PX = 4
 

@@ -26,7 +26,7 @@ import numpy as np
 from jaxtyping import Float, Int, UInt8
 from numpy.typing import NDArray
 
-from ._rig import Rig, save_rig
+from ..rig import Rig, save_rig
 
 PRESETS: tuple[str, ...] = ("clean", "full", "shading", "dust", "cast", "lowlight")
 TERRAINS: tuple[str, ...] = ("flat", "bulldozed", "raised", "hollow", "rough")

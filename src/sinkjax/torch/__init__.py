@@ -4,7 +4,7 @@ Optional: needs the ``torch`` extra (``pip install 'sinkjax[torch]'``). Images a
 ``(B, 3, H, W)`` RGB in [0, 1]; masks are ``(B, 1, H, W)`` in [0, 1] (1 = wheel).
 
 - :func:`rgb_to_hsi`, :func:`soft_hsi_mask` / :class:`SoftHSISegmenter`, :func:`smooth_mask`,
-  :func:`soft_open`: the paper's HSI segmentation, equal to :mod:`sinkjax._segmentation` to
+  :func:`soft_open`: the paper's HSI segmentation, equal to :mod:`sinkjax.soft.segmentation` to
   float64 round-off, differentiable with respect to the image and the six thresholds.
 - :func:`measure_torch` / :class:`SinkageFromMask` / :class:`SinkageFromImage`: z0, theta1,
   theta2 and their one-sigma from the JAX estimator, as torch tensors whose backward is JAX's VJP
@@ -30,10 +30,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _torch_bridge as _bridge
-from ._rig import HUE_SCALE_DEG, SegmentationParams
-from ._soft import STATUS_CODES
-from ._uncertainty import UncertaintyModel
+from ..rig import HUE_SCALE_DEG, SegmentationParams
+from ..soft.estimator import STATUS_CODES
+from ..soft.uncertainty import UncertaintyModel
+from . import jax_bridge as _bridge
 
 __all__ = [
     "STATUS_CODES",
@@ -94,7 +94,7 @@ def _check_rect(rect: Any, height: int, width: int) -> tuple[int, int, int, int]
 def rgb_to_hsi(image: Tensor) -> Tensor:
     """The paper's HSI of an RGB image: hue in degrees [0, 360), saturation and intensity in [0, 1].
 
-    Same formula as :func:`sinkjax._colour.rgb_to_hsi` (hue as ``atan2(sqrt(3) (G - B),
+    Same formula as :func:`sinkjax.soft.colour.rgb_to_hsi` (hue as ``atan2(sqrt(3) (G - B),
     2R - G - B)``), not kornia's HSV. Grey pixels get H = 0 and black pixels S = 0, with zero
     (not NaN) gradients there.
 
@@ -187,7 +187,7 @@ def soft_hsi_mask(
 ) -> Tensor:
     """Soft wheel mask of RGB images: the paper's H/S band test as a product of four sigmoids.
 
-    Equal to :func:`sinkjax._segmentation.wheel_mask` per image: the band is centred on the
+    Equal to :func:`sinkjax.soft.segmentation.wheel_mask` per image: the band is centred on the
     circular mean hue H_w and the mean saturation S_w of the confidence rectangle ``rect`` =
     (x, y, w, h) px; hue limits are H_w + (P - 1) 180 deg, saturation limits P S_w; the
     temperatures set the sigmoid widths.
@@ -276,7 +276,7 @@ class SoftHSISegmenter(nn.Module):
 def smooth_mask(mask: Tensor) -> Tensor:
     """Binomial [1, 4, 6, 4, 1]/16 blur (sigma ~ 1 px) with edge replication, via kornia.
 
-    Equal to :func:`sinkjax._segmentation.smooth`, the soft stand-in for the paper's
+    Equal to :func:`sinkjax.soft.segmentation.smooth`, the soft stand-in for the paper's
     dilation-then-erosion. Shape :math:`(B, C, H, W)` -> :math:`(B, C, H, W)`.
     """
     if not isinstance(mask, Tensor) or mask.dim() != 4:
@@ -292,7 +292,7 @@ def smooth_mask(mask: Tensor) -> Tensor:
 def soft_open(mask: Tensor, radius_px: int = 1) -> Tensor:
     """Grey-level opening (min then max over a (2 r + 1)^2 square), via kornia.morphology.
 
-    Equal to :func:`sinkjax._segmentation.soft_open` (pixels outside the image are ignored).
+    Equal to :func:`sinkjax.soft.segmentation.soft_open` (pixels outside the image are ignored).
     Shape :math:`(B, C, H, W)` -> :math:`(B, C, H, W)`. Raises ValueError for ``radius_px < 1``.
     """
     if not isinstance(mask, Tensor) or mask.dim() != 4:
@@ -412,8 +412,8 @@ class SinkageFromMask(_JaxFunction):
 
     ``values`` (B, 6) is z0 (mm), theta1, theta2 (deg), then their one-sigma; ``status`` (B,) int64
     indexes :data:`STATUS_CODES` and has no gradient. An optional last argument is the
-    :class:`~sinkjax._uncertainty.UncertaintyModel` (default: the estimator's). Backward is
-    JAX's VJP of :func:`sinkjax._torch_bridge.measure_from_mask`, reaching images and masks.
+    :class:`~sinkjax.soft.uncertainty.UncertaintyModel` (default: the estimator's). Backward is
+    JAX's VJP of :func:`sinkjax.torch.jax_bridge.measure_from_mask`, reaching images and masks.
     """
 
     @staticmethod
@@ -436,7 +436,7 @@ class SinkageFromMask(_JaxFunction):
 class SinkageFromImage(_JaxFunction):
     """``apply(images (B,3,H,W), seg_vector (6,), rect, travel, wheel_radius_mm)``.
 
-    The whole JAX estimator, HSI segmentation included (:func:`sinkjax._soft.measure`);
+    The whole JAX estimator, HSI segmentation included (:func:`sinkjax.soft.estimator.measure`);
     ``seg_vector`` holds the thresholds in ``SEG_FIELDS`` order, shared by the batch. Outputs as
     :class:`SinkageFromMask`.
     """
@@ -504,7 +504,7 @@ def measure_torch(
         travel: "right" or "left".
         wheel_radius_mm: physical rim radius R (z0 is reported in mm).
         uncertainty: how the one-sigma is scaled and floored (default: the estimator's).
-        open_radius_px: without masks, as in :func:`sinkjax._soft.measure`; with masks, apply
+        open_radius_px: without masks, as in :func:`sinkjax.soft.estimator.measure`; with masks, apply
             :func:`soft_open` to them yourself.
 
     Returns:

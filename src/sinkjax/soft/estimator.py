@@ -15,15 +15,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from . import _results as R
-from ._fit import build_evidence, fit
-from ._geometry import from_wheel_frame, travel_sign
-from ._hough import hough_rim
-from ._model import end_point, measurements
-from ._outline import extract_outline, refine_outline
-from ._rig import Rig, SegmentationParams
-from ._segmentation import soft_open, wheel_mask
-from ._uncertainty import UncertaintyModel, covariance, measurement_std
+from ..app import results as R
+from ..geometry import from_wheel_frame, travel_sign
+from ..rig import Rig, SegmentationParams
+from .fit import build_evidence, fit
+from .hough import hough_rim
+from .model import end_point, measurements
+from .outline import extract_outline, refine_outline
+from .segmentation import soft_open, wheel_mask
+from .uncertainty import UncertaintyModel, covariance, measurement_std
 
 STATUS_CODES = (R.OK, R.NO_CONTACT, R.NO_WHEEL, R.FIT_FAILED)
 _OK, _NO_CONTACT, _NO_WHEEL, _FIT_FAILED = range(4)
