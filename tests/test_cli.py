@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-import sinkjax
 from sinkjax.app import pipeline as _pipeline
 from sinkjax.app.cli import COMMANDS, main
 from sinkjax.app.results import COLUMNS, FrameResult, Overlay

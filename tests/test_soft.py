@@ -9,13 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sinkjax import synth as S
 from sinkjax.geometry import equivalent_line
 from sinkjax.rig import Rig, SegmentationParams
-from sinkjax.soft.estimator import STATUS_CODES, estimate_batch, measure
+from sinkjax.soft.estimator import estimate_batch, measure
 from sinkjax.soft.fit import fit
 from sinkjax.soft.model import Evidence, measurements
 from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
-from sinkjax import synth as S
+from sinkjax.status import Status
 
 W, H = 320, 240
 
@@ -127,7 +128,7 @@ def degenerate_images() -> dict[str, tuple[np.ndarray, Rig]]:
 def test_degenerate_frames_have_status_and_finite_gradients(case: str) -> None:
     image, rig = degenerate_images()[case]
     est = run(image, rig)
-    status = STATUS_CODES[int(est.status)]
+    status = Status.from_code(int(est.status))
     assert (
         status
         in {"all_wheel": ("no_wheel",), "all_soil": ("no_wheel",), "no_contact": ("no_contact",)}[

@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sinkjax import synth as synth
 from sinkjax.geometry import geometry_from_boundary
 from sinkjax.rig import load_rig
-from sinkjax import synth as synth
 
 
 def _plain(scene: synth.Scene) -> synth.Scene:

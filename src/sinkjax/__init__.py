@@ -62,6 +62,7 @@ from .soft.segmentation import (
     wheel_mask as wheel_mask,
 )
 from .soft.uncertainty import UncertaintyModel as UncertaintyModel
+from .status import Status as Status
 from .synth.render import (
     Scene as Scene,
     Truth as Truth,

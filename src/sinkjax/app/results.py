@@ -9,6 +9,8 @@ from typing import IO
 
 import numpy as np
 
+from ..status import Status
+
 COLUMNS = (
     "image",
     "status",
@@ -24,14 +26,14 @@ COLUMNS = (
     "message",
 )
 
-OK = "ok"
-NO_CONTACT = "no_contact"
-UNREADABLE = "unreadable"
-NO_WHEEL = "no_wheel"
-FIT_FAILED = "fit_failed"
-BAD_RECT = "bad_rect"
-BAD_IMAGE = "bad_image"
-ERROR = "error"
+OK = Status.OK
+NO_CONTACT = Status.NO_CONTACT
+UNREADABLE = Status.UNREADABLE
+NO_WHEEL = Status.NO_WHEEL
+FIT_FAILED = Status.FIT_FAILED
+BAD_RECT = Status.BAD_RECT
+BAD_IMAGE = Status.BAD_IMAGE
+ERROR = Status.ERROR
 
 
 @dataclass

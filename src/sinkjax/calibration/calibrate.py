@@ -40,8 +40,9 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 from ..geometry import travel_sign
 from ..rig import Rig, RigError, SegmentationParams, load_rig, save_rig
 from ..soft import fit as _fit, model as _model
-from ..soft.estimator import MIN_BOUNDARY_POINTS, STATUS_CODES, measure
+from ..soft.estimator import MIN_BOUNDARY_POINTS, measure
 from ..soft.segmentation import wheel_mask
+from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig, augment
 
 LABEL_COLUMNS = ("image", "sinkage_mm", "theta1_deg", "theta2_deg")
@@ -59,7 +60,7 @@ RAW_LIMIT = 12.0
 BACKTRACK = 2.0  # a loss above this times the best so far sends Adam back to the best point
 _TEMPERATURE_UNIT_HUE_DEG = 1.0
 _TEMPERATURE_UNIT_SAT = 0.01
-_OK = STATUS_CODES.index("ok")
+_OK = Status.OK.code
 
 
 class LabelError(RigError):

@@ -18,6 +18,7 @@ from jaxtyping import Array, Float, Int
 from ..app import results as R
 from ..geometry import from_wheel_frame, travel_sign
 from ..rig import Rig, SegmentationParams
+from ..status import Status
 from .fit import build_evidence, fit
 from .hough import hough_rim
 from .model import end_point, measurements
@@ -25,8 +26,6 @@ from .outline import extract_outline, refine_outline
 from .segmentation import soft_open, wheel_mask
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
-STATUS_CODES = (R.OK, R.NO_CONTACT, R.NO_WHEEL, R.FIT_FAILED)
-_OK, _NO_CONTACT, _NO_WHEEL, _FIT_FAILED = range(4)
 # A rim must show edge evidence along at least this fraction of its circumference.
 MIN_RIM_SUPPORT = 0.2
 # A boundary needs at least this many pixels' worth of points to count as contact.
@@ -38,7 +37,7 @@ class SoftEstimate(eqx.Module):
 
     ``params`` are the fitted model (cx, cy, r px; k, b; end lines, see ``_model``) and
     ``params_std`` their sigmas before the uncertainty model's scaling; ``status`` indexes
-    :data:`STATUS_CODES`; the boundary arrays are the outline points and their boundary weights
+    :class:`sinkjax.Status` by its ``code``; the boundary arrays are the outline points and their boundary weights
     (for overlays). For no contact the measurements are 0 (conventions §1).
     """
 
@@ -116,8 +115,12 @@ def measure_from_mask(
     contact = jnp.sum(ev.w_line) >= MIN_BOUNDARY_POINTS
     status = jnp.where(
         circle.support < MIN_RIM_SUPPORT,
-        _NO_WHEEL,
-        jnp.where(~res.ok, _FIT_FAILED, jnp.where(contact, _OK, _NO_CONTACT)),
+        Status.NO_WHEEL.code,
+        jnp.where(
+            ~res.ok,
+            Status.FIT_FAILED.code,
+            jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code),
+        ),
     )
     zero_if_no_contact = jnp.where(contact, 1.0, 0.0)
     return SoftEstimate(
@@ -231,7 +234,7 @@ def estimate_batch(
 
 def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
     p = out.params[i].astype(float)
-    status = STATUS_CODES[int(out.status[i])]
+    status = Status.from_code(int(out.status[i]))
     cx, cy, r = float(p[0]), float(p[1]), float(p[2])
     if status == R.NO_WHEEL:
         return R.failed(

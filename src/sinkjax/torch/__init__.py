@@ -31,17 +31,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..rig import HUE_SCALE_DEG, SegmentationParams
-from ..soft.estimator import STATUS_CODES
 from ..soft.uncertainty import UncertaintyModel
+from ..status import Status
 from . import jax_bridge as _bridge
 
 __all__ = [
-    "STATUS_CODES",
     "MeasureFromMask",
     "RgbToHsi",
     "SinkageFromImage",
     "SinkageFromMask",
     "SoftHSISegmenter",
+    "Status",
     "TorchEstimate",
     "lighting_augmentation",
     "measure_torch",
@@ -411,7 +411,7 @@ class SinkageFromMask(_JaxFunction):
     """``apply(images (B,3,H,W), masks (B,1,H,W), travel, wheel_radius_mm)`` -> (values, status).
 
     ``values`` (B, 6) is z0 (mm), theta1, theta2 (deg), then their one-sigma; ``status`` (B,) int64
-    indexes :data:`STATUS_CODES` and has no gradient. An optional last argument is the
+    indexes :class:`sinkjax.Status` codes and has no gradient. An optional last argument is the
     :class:`~sinkjax.soft.uncertainty.UncertaintyModel` (default: the estimator's). Backward is
     JAX's VJP of :func:`sinkjax.torch.jax_bridge.measure_from_mask`, reaching images and masks.
     """
@@ -463,7 +463,7 @@ class SinkageFromImage(_JaxFunction):
 
 
 class TorchEstimate(NamedTuple):
-    """Per-frame results, each shape (B,). ``status`` indexes :data:`STATUS_CODES` (0 = ok)."""
+    """Per-frame results, each shape (B,). ``status`` indexes :class:`sinkjax.Status` codes (0 = ok)."""
 
     sinkage_mm: Tensor
     theta1_deg: Tensor
