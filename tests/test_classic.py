@@ -13,7 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from sinkjax.app.results import BAD_IMAGE, BAD_RECT, FIT_FAILED, NO_CONTACT, NO_WHEEL, OK
+from sinkjax.status import Status
+
+BAD_IMAGE, BAD_RECT, FIT_FAILED = Status.BAD_IMAGE, Status.BAD_RECT, Status.FIT_FAILED
+NO_CONTACT, NO_WHEEL, OK = Status.NO_CONTACT, Status.NO_WHEEL, Status.OK
 from sinkjax.classic.estimator import (
     _geometry_padded,
     confidence_means,

@@ -14,7 +14,8 @@ import pytest
 
 from sinkjax.app import pipeline as _pipeline
 from sinkjax.app.cli import COMMANDS, main
-from sinkjax.app.results import COLUMNS, FrameResult, Overlay
+from sinkjax.app.results import COLUMNS
+from sinkjax.result import FrameResult, Overlay
 
 RIG_FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]
 
@@ -134,10 +135,14 @@ def test_rig_in_directory_used_and_flags_override(tmp_path, fake):
     assert main(args) == 0
     rig = fake.rigs[-1]
     assert (rig.wheel_radius_mm, rig.confidence_rect, rig.travel) == (90.0, (1, 2, 3, 4), "right")
+    # --rig serves the recordings without a rig.toml of their own (docs/conventions.md §2).
     rig_file = tmp_path / "other.toml"
     rig_file.write_text("wheel_radius_mm = 50\nconfidence_rect = [0, 0, 8, 8]\n")
-    assert main(["estimate", str(d), "--out", out, "--rig", str(rig_file)]) == 0
-    assert fake.rigs[-1].wheel_radius_mm == 50.0
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    png(bare / "b.png")
+    assert main(["estimate", str(d), str(bare), "--out", out, "--rig", str(rig_file)]) == 0
+    assert [r.wheel_radius_mm for r in fake.rigs[-2:]] == [140.0, 50.0]
 
 
 def test_missing_rig_is_exit_2_with_what_to_pass(tmp_path, fake, capsys):

@@ -30,8 +30,9 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from sinkjax.app import pipeline as _pipeline
 from sinkjax.app.cli import main
-from sinkjax.app.inputs import MIN_IMAGE_SIDE_PX
-from sinkjax.app.results import COLUMNS, FrameResult
+from sinkjax.app.frames import MIN_IMAGE_SIDE_PX
+from sinkjax.app.results import COLUMNS
+from sinkjax.result import FrameResult
 
 # A rectangle that fits frames of at least 28x18 px: narrower frames are "off the rectangle".
 RECT = (20, 10, 8, 8)
@@ -459,7 +460,8 @@ BAD_ARGS = [
     (["--PATH", "emptydir"], "no images or videos"),
     (["--PATH", "rig.toml"], "--rig"),
     (["--PATH", "notes.txt"], "neither an image"),
-    (["--NORIG"], "no rig"),
+    # No flags: a.png's folder has an incomplete rig.toml, which applies to it (conventions §2).
+    (["--NORIG"], "rig.toml: missing confidence_rect"),
 ]
 
 

@@ -10,22 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from sinkjax.app.inputs import (
-    Frame,
-    InputError,
-    check_rect,
-    expand_paths,
-    iter_frames,
-    parse_rect,
-    read_image,
-    resolve_rig,
-    to_rgb8,
-)
+from sinkjax.app.frames import Frame, iter_frames, read_image, to_rgb8
+from sinkjax.app.sources import InputError, expand_paths, parse_rect, resolve_rig
 from sinkjax.app.overlay import OverlayWriter, draw_overlay, overlay_name
 from sinkjax.app.pipeline import estimate_paths, estimate_stream, iter_estimates, load_method
 from sinkjax.app.plots import match_truth, plot_accuracy
-from sinkjax.app.results import FrameResult, Overlay
-from sinkjax.rig import Rig, RigError
+from sinkjax.result import FrameResult, Overlay
+from sinkjax.rig import Rig, RigError, rect_problem
 
 RIG = Rig(wheel_radius_mm=100.0, confidence_rect=(2, 2, 4, 4), travel="right")
 
@@ -256,11 +247,12 @@ def test_parse_rect():
             parse_rect(bad)
 
 
-def test_check_rect():
-    rig = Rig(wheel_radius_mm=1.0, confidence_rect=(10, 10, 5, 5))
-    assert check_rect((15, 15, 3), rig) is None
-    msg = check_rect((14, 20, 3), rig)
+def test_rect_problem():
+    rect = (10, 10, 5, 5)
+    assert rect_problem(rect, 15, 15) is None
+    msg = rect_problem(rect, 14, 20)
     assert msg is not None and "20x14" in msg and "--confidence-rect" in msg
+    assert rect_problem((-1, 0, 5, 5), 100, 100) is not None
 
 
 # --- pipeline ----------------------------------------------------------------------------------
@@ -385,8 +377,8 @@ def test_overlay_names_unique_and_safe(tmp_path):
     assert overlay_name("video_000123", used) == "video_000123.png"
     assert overlay_name("video_000123", used) == "video_000123_2.png"
     assert overlay_name("we?ird name", used) == "we_ird_name.png"
-    writer = OverlayWriter(tmp_path / "ov", RIG)
-    p = writer.write(np.zeros((120, 160, 3), np.uint8), _full_result(), "a")
+    writer = OverlayWriter(tmp_path / "ov")
+    p = writer.write(np.zeros((120, 160, 3), np.uint8), _full_result(), "a", RIG)
     assert p is not None and p.name == "a.png" and cv2.imread(str(p)).shape == (120, 160, 3)
     assert writer.write(None, _full_result(), "b") is None
 
@@ -441,5 +433,11 @@ def test_estimate_paths_finds_rig_in_directory(tmp_path):
         (os.path.join(str(d), "a.png"), "ok"),
         (os.path.join(str(d), "b.png"), "unreadable"),
     ]
+    # An image file given on its own uses the rig.toml of its folder (docs/conventions.md §2).
+    alone = list(estimate_paths([str(d / "a.png")], method=FakeMethod()))
+    assert [(r.image, r.status) for r in alone] == [(str(d / "a.png"), "ok")]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    write_rgb(bare / "c.png", rgb_image())
     with pytest.raises(RigError, match="no rig"):
-        estimate_paths([str(d / "a.png")], method=FakeMethod())
+        estimate_paths([str(bare / "c.png")], method=FakeMethod())

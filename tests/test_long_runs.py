@@ -18,8 +18,10 @@ import pytest
 
 from sinkjax.app import pipeline as _pipeline
 from sinkjax.app.cli import main
-from sinkjax.app.inputs import FrameSelection, count_frames, expand_paths, iter_frames
-from sinkjax.app.results import COLUMNS, FrameResult
+from sinkjax.app.frames import FrameSelection, count_frames, iter_frames
+from sinkjax.app.sources import expand_paths
+from sinkjax.app.results import COLUMNS
+from sinkjax.result import FrameResult
 from sinkjax.app.smoothing import SMOOTH_COLUMNS
 
 RIG_FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]

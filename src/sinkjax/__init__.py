@@ -9,21 +9,18 @@ OpenCV pipeline, ``_synth`` the renderer with exact truth, and ``_io``/``_pipeli
 the command line. The optional ``sinkjax.torch`` holds the PyTorch/kornia side.
 """
 
-from .app.inputs import read_image as read_image
+from .app.frames import read_image as read_image
 from .app.overlay import draw_overlay as draw_overlay
-from .app.pipeline import (
-    estimate_paths as estimate_paths,
-    estimate_stream as estimate_stream,
-    estimate_to_csv as estimate_to_csv,
-)
+from .app.pipeline import estimate_paths as estimate_paths, estimate_stream as estimate_stream
 from .app.plots import plot_accuracy as plot_accuracy, plot_series as plot_series
-from .app.results import (
-    COLUMNS as COLUMNS,
-    FrameResult as FrameResult,
-    Overlay as Overlay,
-    ResultsWriter as ResultsWriter,
-)
+from .app.results import COLUMNS as COLUMNS, ResultsWriter as ResultsWriter, csv_row as csv_row
+from .app.run import RunSummary as RunSummary, estimate_to_csv as estimate_to_csv
 from .app.smoothing import smooth_csv as smooth_csv
+from .app.sources import (
+    Recording as Recording,
+    RigOverrides as RigOverrides,
+    open_recordings as open_recordings,
+)
 from .calibration.calibrate import (
     LabelError as LabelError,
     calibrate as calibrate,
@@ -41,6 +38,7 @@ from .geometry import (
     sinkage_px as sinkage_px,
     to_wheel_frame as to_wheel_frame,
 )
+from .result import FrameResult as FrameResult, Overlay as Overlay
 from .rig import (
     Rig as Rig,
     RigError as RigError,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import math
 import tomllib
 from pathlib import Path
@@ -108,6 +109,7 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
             f"{source}: missing confidence_rect = [x, y, w, h] (pixels of a rectangle that always "
             "shows the wheel face); add it or pass --confidence-rect X,Y,W,H"
         )
+    _check_keys(data, RIG_KEYS, source, "")
     radius = data["wheel_radius_mm"]
     if isinstance(radius, int) and not isinstance(radius, bool):
         radius = float(radius)
@@ -118,11 +120,7 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     seg_data = data.get("segmentation", {})
     if not isinstance(seg_data, dict):
         raise RigError(f"{source}: [segmentation] must be a table")
-    unknown = set(seg_data) - set(SEG_FIELDS)
-    if unknown:
-        raise RigError(
-            f"{source}: unknown [segmentation] keys {sorted(unknown)}; known: {list(SEG_FIELDS)}"
-        )
+    _check_keys(seg_data, SEG_FIELDS, source, "[segmentation] ")
     seg_kwargs: dict[str, Any] = {}
     for name, value in seg_data.items():
         if (
@@ -137,6 +135,33 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     return Rig(wheel_radius_mm=radius, confidence_rect=rect, travel=travel, segmentation=seg)
 
 
+RIG_KEYS = ("wheel_radius_mm", "confidence_rect", "travel", "segmentation")
+
+
+def _check_keys(data: dict[str, Any], known: tuple[str, ...], source: str, table: str) -> None:
+    """Raise RigError for the first unknown key, suggesting the closest known one."""
+    for key in data:
+        if key not in known:
+            close = difflib.get_close_matches(key, known, n=1, cutoff=0.5)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise RigError(
+                f"{source}: unknown {table}key {key!r}; {hint}known keys: {', '.join(known)}"
+            )
+
+
+def rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> str | None:
+    """None if the confidence rectangle (x, y, w, h) px lies inside a ``width`` x ``height``
+    image; else why not, with the fix. The one rule every method and the pipeline apply."""
+    x, y, w, h = (int(v) for v in rect)
+    if x >= 0 and y >= 0 and w >= 1 and h >= 1 and x + w <= width and y + h <= height:
+        return None
+    return (
+        f"confidence_rect [{x}, {y}, {w}, {h}] extends beyond the {width}x{height} image "
+        f"(needs x+w <= {width} and y+h <= {height}); fix confidence_rect in the rig or pass "
+        "--confidence-rect X,Y,W,H"
+    )
+
+
 def _check_segmentation(seg: SegmentationParams, source: str) -> None:
     d = seg.as_dict()
     for kind in ("hue", "sat"):
@@ -147,16 +172,26 @@ def _check_segmentation(seg: SegmentationParams, source: str) -> None:
         raise RigError(f"{source}: [segmentation] temperatures must be > 0")
 
 
+def read_rig_toml(path: str | Path) -> dict[str, Any]:
+    """A rig file's TOML as a dict (a UTF-8 byte-order mark is allowed).
+
+    Raises RigError (naming the file) if it cannot be read or is not TOML.
+    """
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8-sig"))
+    except OSError as e:
+        raise RigError(f"{p}: cannot read the rig file ({e.strerror or e})") from e
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise RigError(f"{p}: not valid TOML ({e})") from e
+
+
 def load_rig(path: str | Path) -> Rig:
     """Read a ``rig.toml``. Raises RigError (missing file, bad TOML, bad field) with the fix."""
     p = Path(path)
     if not p.is_file():
         raise RigError(f"rig file {str(p)!r} does not exist; write one (see README) or pass flags")
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise RigError(f"{p}: not valid TOML ({e})") from e
-    return rig_from_dict(data, source=str(p))
+    return rig_from_dict(read_rig_toml(p), source=str(p))
 
 
 def rig_to_toml(rig: Rig, comment: str | None = None) -> str:

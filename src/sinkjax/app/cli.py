@@ -15,9 +15,12 @@ from dataclasses import dataclass
 from types import ModuleType
 
 from ..rig import RigError
-from .inputs import FrameSelection, InputError, expand_paths, parse_rect, resolve_rig
-from .pipeline import MethodUnavailable, ResumeError, estimate_to_csv, load_method
+from .frames import FrameSelection
+from .pipeline import MethodUnavailable, load_method
+from .resume import ResumeError
+from .run import estimate_to_csv
 from .smoothing import SmoothingOptions
+from .sources import InputError, RigOverrides, open_recordings, parse_rect
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -84,14 +87,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         raise UsageError(f"--batch-size must be at least 1, got {args.batch_size}")
     select, smoothing = _long_run_options(args)
     rect = parse_rect(args.confidence_rect) if args.confidence_rect is not None else None
-    inputs = expand_paths(args.paths)
-    rig = resolve_rig(
-        inputs,
-        rig_path=args.rig,
-        wheel_radius_mm=args.wheel_radius_mm,
-        confidence_rect=rect,
-        travel=args.travel,
-    )
+    overrides = RigOverrides(args.wheel_radius_mm, rect, args.travel)
+    inputs = open_recordings(args.paths, rig_path=args.rig, overrides=overrides)
     try:
         load_method(args.method)
     except MethodUnavailable as e:
@@ -99,7 +96,6 @@ def _run_estimate(args: argparse.Namespace) -> int:
     try:
         summary = estimate_to_csv(
             inputs,
-            rig,
             args.out,
             method=args.method,
             batch_size=args.batch_size,
@@ -110,10 +106,12 @@ def _run_estimate(args: argparse.Namespace) -> int:
             smoothing=smoothing,
             progress=True,
         )
-    except ResumeError as e:
+    except (ResumeError, ValueError) as e:
         raise UsageError(str(e)) from e
     except OSError as e:
         raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e
+    if len(summary.recordings) > 1:
+        print("\n".join(["rigs:", *summary.rig_lines()]))
     print(summary.line())
     if summary.n_frames == 0:
         if summary.n_resumed:
@@ -129,10 +127,10 @@ def _run_estimate(args: argparse.Namespace) -> int:
             f"column of {args.out}); check that the PATHs are intact image or video files"
         )
     if summary.only_bad_rect:
-        x, y, w, h = rig.confidence_rect
         raise UsageError(
-            f"the confidence rectangle [{x}, {y}, {w}, {h}] lies off every image; fix "
-            "confidence_rect in the rig or pass --confidence-rect X,Y,W,H inside the images"
+            "the confidence rectangle lies off every image (see the message column of "
+            f"{args.out}); fix confidence_rect in the rig or pass --confidence-rect X,Y,W,H "
+            "inside the images"
         )
     return EXIT_OK
 

@@ -7,9 +7,9 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
-from .inputs import RIG_FILENAME, resolve_rig
-from .pipeline import RunSummary, estimate_to_csv
 from .plots import Matched, match_truth, number, plot_accuracy
+from .run import RunSummary, estimate_to_csv
+from .sources import RIG_FILENAME, resolve_rig
 
 DEMO_FRAMES = 12
 DEMO_SEED = 0
@@ -124,7 +124,7 @@ def run_demo(
     results_csv = out / "results.csv"
     overlay_dir = out / "overlays"
     summary = estimate_to_csv(
-        images, rig, results_csv, method=method, overlay_dir=overlay_dir, progress=progress
+        images, results_csv, rig=rig, method=method, overlay_dir=overlay_dir, progress=progress
     )
     plot_png = plot_accuracy(
         results_csv, truth_csv, out / "accuracy.png", title=f"sinkjax demo, method {method}"

@@ -13,8 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..result import FrameResult
 from ..rig import Rig
-from .results import NO_CONTACT, OK, FrameResult
+from ..status import Status
 
 # RGB colours (the image is drawn in RGB and converted to BGR only when written).
 _RIM = (255, 215, 0)
@@ -101,13 +102,13 @@ def draw_overlay(image: np.ndarray, result: FrameResult, rig: Rig | None = None)
 
     line_h = round(30 * scale) + 6
     y_text = line_h
-    if result.status in (OK, NO_CONTACT):
+    if result.status in (Status.OK, Status.NO_CONTACT):
         lines = [
             f"z0 = {_fmt(result.sinkage_mm, result.sinkage_std_mm, 'mm')}",
             f"theta1 = {_fmt(result.theta1_deg, result.theta1_std_deg, 'deg')}",
             f"theta2 = {_fmt(result.theta2_deg, result.theta2_std_deg, 'deg')}",
         ]
-        if result.status == NO_CONTACT:
+        if result.status == Status.NO_CONTACT:
             lines.append("no contact")
         for text in lines:
             _label(img, text, (8, y_text), scale, _TEXT)
@@ -136,18 +137,20 @@ def overlay_name(stem: str, used: set[str]) -> str:
 class OverlayWriter:
     """Writes one overlay PNG per frame into ``directory`` (created), names kept unique."""
 
-    def __init__(self, directory: str | Path, rig: Rig | None = None) -> None:
+    def __init__(self, directory: str | Path) -> None:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._rig = rig
         self._used: set[str] = set()
 
-    def write(self, image: np.ndarray | None, result: FrameResult, stem: str) -> Path | None:
-        """Write the overlay; None (nothing written) when the frame has no image."""
+    def write(
+        self, image: np.ndarray | None, result: FrameResult, stem: str, rig: Rig | None = None
+    ) -> Path | None:
+        """Write the overlay (``rig``: draw its confidence rectangle); None when the frame has
+        no image."""
         if image is None:
             return None
         path = self.directory / overlay_name(stem, self._used)
-        drawn = draw_overlay(image, result, self._rig)
+        drawn = draw_overlay(image, result, rig)
         if not cv2.imwrite(str(path), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
             raise OSError(f"could not write overlay {path}")
         return path
@@ -161,7 +164,7 @@ class OverlayVideoWriter:
     status, so the video stays in step with the results CSV. Call :meth:`close` at the end.
     """
 
-    def __init__(self, path: str | Path, rig: Rig | None = None, *, fps: float = 10.0) -> None:
+    def __init__(self, path: str | Path, *, fps: float = 10.0) -> None:
         self.path = Path(path)
         if self.path.suffix.lower() not in (".mp4", ".m4v", ".mov"):
             raise ValueError(f"--overlay-video must name an .mp4 file, got {str(path)!r}")
@@ -170,7 +173,6 @@ class OverlayVideoWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.fps = float(fps)
         self.n_written = 0
-        self._rig = rig
         self._size: tuple[int, int] | None = None  # (width, height)
         self._writer: cv2.VideoWriter | None = None
         self._waiting: list[FrameResult] = []  # rows without pixels before the size is known
@@ -189,19 +191,19 @@ class OverlayVideoWriter:
             self._put(None, result)
         self._waiting.clear()
 
-    def _put(self, image: np.ndarray | None, result: FrameResult) -> None:
+    def _put(self, image: np.ndarray | None, result: FrameResult, rig: Rig | None = None) -> None:
         assert self._writer is not None and self._size is not None
         width, height = self._size
         if image is None:
             drawn = draw_overlay(np.zeros((height, width, 3), np.uint8), result)
         else:
-            drawn = draw_overlay(image, result, self._rig)
+            drawn = draw_overlay(image, result, rig)
             if drawn.shape[:2] != (height, width):
                 drawn = cv2.resize(drawn, (width, height), interpolation=cv2.INTER_AREA)
         self._writer.write(cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR))
         self.n_written += 1
 
-    def write(self, image: np.ndarray | None, result: FrameResult) -> None:
+    def write(self, image: np.ndarray | None, result: FrameResult, rig: Rig | None = None) -> None:
         """Append the overlay of one frame (``image`` None: a black frame with the status)."""
         if self._broken:
             return
@@ -210,7 +212,7 @@ class OverlayVideoWriter:
                 self._waiting.append(result)
                 return
             self._open(image.shape[1], image.shape[0])
-        self._put(image, result)
+        self._put(image, result, rig)
 
     def close(self) -> None:
         """Finish the file (a run whose frames all lacked pixels writes no video)."""

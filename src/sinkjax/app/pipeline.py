@@ -1,56 +1,27 @@
-"""Frames -> results: batching, method dispatch, per-frame failure isolation, resuming.
+"""Frames -> results: method dispatch, batching, per-frame failure isolation, recordings.
 
 Every input frame gets exactly one :class:`FrameResult`, in input order, and a method that raises
-spoils only the frames it was working on (status ``error`` with the exception text). Rows are
-appended and flushed one by one; ``resume`` skips the frames an earlier run already wrote, so an
-interrupted run, resumed, leaves the same file as one that never stopped.
+spoils only the frames it was working on (status ``error`` with the exception text). Each
+recording is measured with its own rig.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import functools
 import importlib
 import inspect
 import logging
-import os
-import time
-from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ..rig import Rig
-from .inputs import (
-    ALL_FRAMES,
-    Frame,
-    FrameSelection,
-    Inputs,
-    check_image_size,
-    check_rect,
-    count_frames,
-    expand_paths,
-    frame_rate,
-    iter_frames,
-    resolve_rig,
-)
-from .overlay import OverlayVideoWriter, OverlayWriter
-from .results import (
-    BAD_IMAGE,
-    BAD_RECT,
-    COLUMNS,
-    ERROR,
-    NO_CONTACT,
-    OK,
-    FrameResult,
-    ResultsWriter,
-    failed,
-)
-from .smoothing import SMOOTH_COLUMNS, SmoothingOptions, smooth_csv
+from ..result import FrameResult, failed
+from ..rig import Rig, rect_problem
+from ..status import Status
+from .frames import ALL_FRAMES, Frame, FrameSelection, check_image_size, iter_frames
+from .sources import Inputs, Recording, assign_rigs, expand_paths, with_rig
 
 log = logging.getLogger("sinkjax")
 
@@ -131,14 +102,14 @@ def _run_group(
         return _call(run, images, rig, names)
     except Exception as e:
         if not retry or len(names) == 1:
-            return [failed(n, ERROR, _error_text(e)) for n in names]
+            return [failed(n, Status.ERROR, _error_text(e)) for n in names]
     # One bad frame must not spoil its batch: try each frame alone.
     out: list[FrameResult] = []
     for image, name in zip(images, names, strict=True):
         try:
             out.extend(_call(run, [image], rig, [name]))
         except Exception as e:
-            out.append(failed(name, ERROR, _error_text(e)))
+            out.append(failed(name, Status.ERROR, _error_text(e)))
     return out
 
 
@@ -221,11 +192,11 @@ def _iter_estimates(
         frame = _as_frame(item)
         ready: FrameResult | None = None
         if frame.image is None:
-            ready = failed(frame.name, frame.status or ERROR, frame.message or "no image")
+            ready = failed(frame.name, frame.status or Status.ERROR, frame.message or "no image")
         elif (problem := check_image_size(frame.image.shape)) is not None:
-            ready = failed(frame.name, BAD_IMAGE, problem)
-        elif (problem := check_rect(frame.image.shape, rig)) is not None:
-            ready = failed(frame.name, BAD_RECT, problem)
+            ready = failed(frame.name, Status.BAD_IMAGE, problem)
+        elif (problem := rect_problem(rig.confidence_rect, *frame.image.shape[:2])) is not None:
+            ready = failed(frame.name, Status.BAD_RECT, problem)
         if ready is not None:
             if not batch:
                 yield frame, ready
@@ -260,6 +231,32 @@ def estimate_stream(
     return (result for _, result in pairs)
 
 
+def iter_recordings(
+    inputs: Inputs,
+    *,
+    method: str | BatchMethod = "soft",
+    batch_size: int = 8,
+    select: FrameSelection = ALL_FRAMES,
+    skip: Collection[str] = frozenset(),
+) -> Iterator[tuple[Recording, Frame, FrameResult]]:
+    """Every selected frame of every recording, with its result, in input order.
+
+    Each recording is measured with its own rig (see :func:`sinkjax.app.sources.assign_rigs`);
+    frames are read lazily and batches never span two recordings. Raises ValueError /
+    MethodUnavailable before reading any frame, and ValueError if a recording has no rig.
+    """
+    for rec in inputs.recordings:
+        if rec.rig is None:
+            raise ValueError(f"recording {rec.name!r} has no rig; use assign_rigs first")
+    image_index = 0
+    for rec in inputs.recordings:
+        assert rec.rig is not None
+        frames = iter_frames(rec.sources, select=select, skip=skip, first_image_index=image_index)
+        image_index += sum(s.kind == "image" for s in rec.sources)
+        for frame, result in iter_estimates(frames, rec.rig, method=method, batch_size=batch_size):
+            yield rec, frame, result
+
+
 def estimate_paths(
     paths: Sequence[str | Path],
     rig: Rig | None = None,
@@ -271,214 +268,15 @@ def estimate_paths(
 ) -> Iterator[FrameResult]:
     """Results for PATH arguments (images, directories, videos), one per frame, in order.
 
-    ``rig`` None: ``rig_path``, else a ``rig.toml`` in the first directory. ``select``: which
-    frame indices (see :class:`FrameSelection`). Raises InputError or RigError (bad arguments)
-    before any frame is measured.
+    ``rig`` given: every recording uses it. None: each recording its own ``rig.toml``, else
+    ``rig_path`` (docs/conventions.md §2). ``select``: which frame indices (see
+    :class:`FrameSelection`). Raises InputError or RigError (bad arguments) before any frame
+    is measured.
     """
     inputs = expand_paths(paths)
-    if rig is None:
-        rig = resolve_rig(inputs, rig_path=rig_path)
-    frames = iter_frames(inputs.sources, select=select)
-    return estimate_stream(frames, rig, method=method, batch_size=batch_size)
-
-
-@dataclass
-class RunSummary:
-    """What a run produced: frames per status, how many had pixels, where the rows went."""
-
-    out: Path | None
-    counts: Counter[str] = field(default_factory=Counter)
-    n_read: int = 0
-    seconds: float = 0.0
-    n_resumed: int = 0  # rows an earlier run had written (``resume``)
-    smoothed: bool = False
-
-    @property
-    def n_frames(self) -> int:
-        return sum(self.counts.values())
-
-    @property
-    def only_bad_rect(self) -> bool:
-        """Every frame that could be read had its confidence rectangle off the image."""
-        return self.n_read > 0 and self.counts[BAD_RECT] == self.n_read
-
-    def line(self) -> str:
-        """One line: ``12 frames: 10 ok, 1 no_contact; failed: 1 unreadable -> results.csv``."""
-        measured = [f"{self.counts[OK]} ok"]
-        if self.counts[NO_CONTACT]:
-            measured.append(f"{self.counts[NO_CONTACT]} no_contact")
-        failures = sorted((s, n) for s, n in self.counts.items() if s not in (OK, NO_CONTACT))
-        text = f"{self.n_frames} frames: {', '.join(measured)}"
-        text += "; failed: " + (", ".join(f"{n} {s}" for s, n in failures) if failures else "0")
-        if self.seconds > 0 and self.n_frames:
-            text += f" ({self.n_frames / self.seconds:.2f} frames/s)"
-        if self.n_resumed:
-            text += f"; {self.n_resumed} rows kept from the earlier run"
-        if self.smoothed:
-            text += "; smoothed columns added"
-        return text + (f" -> {self.out}" if self.out is not None else "")
-
-
-class ResumeError(ValueError):
-    """``resume`` was asked for, but the output file is not a results CSV this run can extend."""
-
-
-def _truncate_partial_row(path: Path) -> None:
-    """Cut a row that a killed run left half-written (no final newline); it is measured again."""
-    with open(path, "rb+") as f:
-        f.seek(0, os.SEEK_END)
-        size = f.tell()
-        if size == 0:
-            return
-        f.seek(size - 1)
-        if f.read(1) == b"\n":
-            return
-        # Rows are short: look back a block at a time for the last newline.
-        end = size
-        while end > 0:
-            start = max(0, end - 65536)
-            f.seek(start)
-            block = f.read(end - start)
-            cut = block.rfind(b"\n")
-            if cut != -1:
-                f.truncate(start + cut + 1)
-                return
-            end = start
-        f.truncate(0)
-
-
-def _strip_columns(path: Path, n_columns: int) -> None:
-    """Rewrite ``path`` keeping its first ``n_columns`` columns (atomically)."""
-    tmp = path.with_name(f".{path.name}.resume.tmp")
-    with (
-        open(path, newline="", encoding="utf-8") as src,
-        open(tmp, "w", newline="", encoding="utf-8") as dst,
-    ):
-        writer = csv.writer(dst, lineterminator="\n")
-        for row in csv.reader(src):
-            writer.writerow(row[:n_columns])
-    os.replace(tmp, path)
-
-
-def prepare_resume(out_csv: str | Path) -> set[str]:
-    """Make ``out_csv`` ready to be appended to; return the image names it already has.
-
-    A missing or empty file is a fresh start (empty set; the caller writes the header). A row
-    left half-written is removed; smoothed columns from an earlier ``smooth`` are dropped (they
-    are recomputed over the whole file). Raises ResumeError for a file with another header.
-    """
-    path = Path(out_csv)
-    if not path.is_file():
-        return set()
-    _truncate_partial_row(path)
-    with open(path, newline="", encoding="utf-8") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            return set()
-        if tuple(header) not in (COLUMNS, (*COLUMNS, *SMOOTH_COLUMNS)):
-            raise ResumeError(
-                f"cannot resume into {path}: it is not a sinkjax results CSV (its header is "
-                f"{','.join(header)[:80]!r}); pass another --out, or drop --resume to overwrite it"
-            )
-        done = {row[0] for row in reader if row}
-    if len(header) != len(COLUMNS):
-        _strip_columns(path, len(COLUMNS))
-    return done
-
-
-def estimate_to_csv(
-    paths: Sequence[str | Path] | Inputs,
-    rig: Rig,
-    out_csv: str | Path,
-    *,
-    method: str | BatchMethod = "soft",
-    batch_size: int = 8,
-    overlay_dir: str | Path | None = None,
-    overlay_video: str | Path | None = None,
-    select: FrameSelection = ALL_FRAMES,
-    resume: bool = False,
-    smoothing: SmoothingOptions | None = None,
-    progress: bool = False,
-) -> RunSummary:
-    """Measure every frame of ``paths`` and write the results CSV, one flushed row per frame.
-
-    ``overlay_dir``: also write one overlay PNG per readable frame there; ``overlay_video``: an
-    annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
-    :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
-    the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
-    smoothed columns (:mod:`sinkjax.app.smoothing`). ``progress``: a progress bar (frames/s, ETA)
-    on stderr when it is a terminal. Rows already written stay if the run is interrupted.
-    Raises InputError / ValueError / ResumeError / MethodUnavailable / OSError before the first
-    frame for unusable arguments.
-    """
-    from tqdm import tqdm
-
-    inputs = paths if isinstance(paths, Inputs) else expand_paths(paths)
-    out = Path(out_csv)
-    done: set[str] = set()  # filled below; the frames are read lazily, after that
-    frames = iter_frames(inputs.sources, select=select, skip=done)
-    pairs = iter_estimates(frames, rig, method=method, batch_size=batch_size)
-    video = None
-    if overlay_video is not None:
-        video = OverlayVideoWriter(
-            overlay_video, rig, fps=frame_rate(inputs.sources, select=select)
-        )
-    # Only now, with every argument checked, may the output file be touched.
-    if resume:
-        done.update(prepare_resume(out))
-    fresh = not (resume and out.is_file() and out.stat().st_size > 0)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    overlays = OverlayWriter(overlay_dir, rig) if overlay_dir is not None else None
-    if video is not None and done:
-        log.warning(
-            "%s holds only the frames measured in this run (not the %d resumed rows)",
-            overlay_video,
-            len(done),
-        )
-    summary = RunSummary(out=out, n_resumed=len(done))
-    start = time.perf_counter()
-    total = count_frames(inputs.sources, select=select) if progress else None
-    bar = tqdm(
-        total=total,
-        initial=min(len(done), total or 0),
-        unit=" frames",
-        desc=method if isinstance(method, str) else None,
-        disable=None if progress else True,
-    )
-    try:
-        with open(out, "w" if fresh else "a", newline="", encoding="utf-8") as stream:
-            writer = ResultsWriter(stream, header=fresh)
-            for frame, result in pairs:
-                writer.write(result)
-                summary.counts[result.status] += 1
-                summary.n_read += frame.image is not None
-                _write_overlays(frame, result, overlays, video)
-                bar.update(1)
-    finally:
-        bar.close()
-        if video is not None:
-            video.close()
-    summary.seconds = time.perf_counter() - start
-    if smoothing is not None:
-        smooth_csv(out, out, smoothing)
-        summary.smoothed = True
-    return summary
-
-
-def _write_overlays(
-    frame: Frame,
-    result: FrameResult,
-    overlays: OverlayWriter | None,
-    video: OverlayVideoWriter | None,
-) -> None:
-    if overlays is not None:
-        try:
-            overlays.write(frame.image, result, frame.stem or Path(frame.name).stem)
-        except (OSError, cv2.error) as e:
-            log.warning("%s: overlay not written (%s)", frame.name, e)
-    if video is not None:
-        try:
-            video.write(frame.image, result)
-        except (OSError, cv2.error) as e:
-            log.warning("%s: overlay video frame not written (%s)", frame.name, e)
+    if rig is not None:
+        inputs = with_rig(inputs, rig)
+    else:
+        inputs = assign_rigs(inputs, rig_path=rig_path)
+    pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select)
+    return (result for _, _, result in pairs)

@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float
 
-from .results import COLUMNS, NO_CONTACT, OK, _cell
+from ..status import Status
+from .results import COLUMNS, cell
 
 # (value column, std column, smoothed column, smoothed std column, unit)
 QUANTITIES = (
@@ -178,7 +179,9 @@ def smooth_rows(
         t = times[start:stop]
         if np.any(np.diff(t) < 0):  # rows out of order (e.g. hand-edited): use row positions
             t = np.arange(stop - start, dtype=float)
-        measured = np.array([row.get("status") in (OK, NO_CONTACT) for row in segment])
+        measured = np.array(
+            [row.get("status") in (Status.OK, Status.NO_CONTACT) for row in segment]
+        )
         for col, std_col, s_col, s_std_col, unit in QUANTITIES:
             y = np.array([_number(row.get(col)) for row in segment])
             y[~measured] = np.nan
@@ -231,7 +234,7 @@ def smooth_csv(
             writer.writerow((*COLUMNS, *SMOOTH_COLUMNS))
             for row, extra in zip(rows, smoothed, strict=True):
                 cells = [row.get(c) or "" for c in COLUMNS]
-                writer.writerow(cells + [_cell(extra[c]) for c in SMOOTH_COLUMNS])
+                writer.writerow(cells + [cell(extra[c]) for c in SMOOTH_COLUMNS])
         os.replace(tmp, out)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -88,7 +88,7 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
     unreadable image, a number that does not parse or is out of range, no measured cell at all,
     images of different sizes, or a confidence rectangle of ``rig`` that lies off the images.
     """
-    from ..app.inputs import read_image
+    from ..app.frames import read_image
 
     p = Path(path)
     if not p.is_file():

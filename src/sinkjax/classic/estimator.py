@@ -34,19 +34,10 @@ import math
 import jax
 import numpy as np
 
-from ..app.results import (
-    BAD_IMAGE,
-    BAD_RECT,
-    FIT_FAILED,
-    NO_WHEEL,
-    OK,
-    FrameResult,
-    Overlay,
-    failed,
-    no_contact,
-)
 from ..geometry import SinkageGeometry, geometry_from_boundary, travel_sign
+from ..result import FrameResult, Overlay, failed, no_contact
 from ..rig import HUE_SCALE_DEG, Rig, SegmentationParams
+from ..status import Status
 from .outline import (
     fill_holes,
     hough_rim,
@@ -212,7 +203,7 @@ def estimate_classic(
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         return failed(
             name,
-            BAD_IMAGE,
+            Status.BAD_IMAGE,
             f"expected an (H, W, 3) uint8 RGB image, got shape {img.shape} dtype {img.dtype}",
         )
     height, width = img.shape[:2]
@@ -220,7 +211,7 @@ def estimate_classic(
     try:
         rect = _check_rect(rig.confidence_rect, img.shape)
     except ValueError as e:
-        return failed(name, BAD_RECT, str(e))
+        return failed(name, Status.BAD_RECT, str(e))
     # Step 2: HSI. Step 3: means, ranges, binary image, morphology.
     h_deg, s, _ = rgb_to_hsi_np(img)
     h_w, s_w = confidence_means(h_deg, s, rect)
@@ -229,7 +220,7 @@ def estimate_classic(
     if region is None or np.count_nonzero(region) < _MIN_WHEEL_PIXELS:
         return failed(
             name,
-            NO_WHEEL,
+            Status.NO_WHEEL,
             f"no wheel-coloured region at the confidence rect {list(rect)} (H_w = {h_w:.1f} deg, "
             f"S_w = {s_w:.3f}); check that the rectangle lies on the wheel face",
         )
@@ -238,22 +229,26 @@ def estimate_classic(
     contour, normals = wheel_outline(fill_holes(region))
     inner = off_border(contour, img.shape)
     if np.count_nonzero(inner) < 50:
-        return failed(name, NO_WHEEL, "the wheel region's outline is too short to hold a rim")
+        return failed(
+            name, Status.NO_WHEEL, "the wheel region's outline is too short to hold a rim"
+        )
     m = min(height, width)
     r_range = (R_MIN_FRAC * m, R_MAX_FRAC * m)
     coarse = hough_rim(contour[inner], normals[inner], (height, width), r_range)
     if coarse is None:
-        return failed(name, FIT_FAILED, "the Hough transform found no rim circle in the outline")
+        return failed(
+            name, Status.FIT_FAILED, "the Hough transform found no rim circle in the outline"
+        )
     bc = max(2.0, m / 120.0)
     cx, cy, r, n_in = refine_rim(
         contour[inner], normals[inner], coarse[0], coarse[1], coarse[2], band0_px=2.0 * bc
     )
     if not (np.isfinite([cx, cy, r]).all() and r_range[0] * 0.9 <= r <= r_range[1] * 1.1):
-        return failed(name, FIT_FAILED, f"rim fit diverged (r = {r:.1f} px)")
+        return failed(name, Status.FIT_FAILED, f"rim fit diverged (r = {r:.1f} px)")
     if n_in < 0.1 * 2.0 * math.pi * r:
         return failed(
             name,
-            FIT_FAILED,
+            Status.FIT_FAILED,
             f"rim circle (r = {r:.1f} px) is supported by only {n_in} outline points; "
             "the wheel's outline is not a circle (segmentation?)",
         )
@@ -261,7 +256,7 @@ def estimate_classic(
     if math.hypot(rx + 0.5 * (rw - 1) - cx, ry + 0.5 * (rh - 1) - cy) > r:
         return failed(
             name,
-            NO_WHEEL,
+            Status.NO_WHEEL,
             f"the only circle in the outline of the region at the confidence rect (centre "
             f"({cx:.0f}, {cy:.0f}) px, r = {r:.0f} px) does not contain the rectangle; "
             "check that the rectangle lies on the wheel face",
@@ -296,7 +291,7 @@ def estimate_classic(
             # image has lost part of the wheel face instead; say so rather than report a number.
             return failed(
                 name,
-                FIT_FAILED,
+                Status.FIT_FAILED,
                 "the wheel outline dips inside the rim above the wheel centre: the binary image "
                 "lost part of the wheel face (shading, highlights or dust?); widen P_d/P_a or "
                 "calibrate",
@@ -314,18 +309,22 @@ def estimate_classic(
     t1 = math.degrees(float(geo.theta1_rad))
     t2 = math.degrees(float(geo.theta2_rad))
     if not all(math.isfinite(v) for v in (z0, t1, t2)):
-        return failed(name, FIT_FAILED, "Eqs. 1-3 gave a non-finite result")
+        return failed(name, Status.FIT_FAILED, "Eqs. 1-3 gave a non-finite result")
     k, bb = float(geo.k), float(geo.b_px)
 
     line_uv = np.array([[b_uv[0], k * b_uv[0] + bb], [a_uv[0], k * a_uv[0] + bb]])
     to_img = lambda q: (float(sign * q[0] + cx), float(q[1] + cy))
-    overlay.boundary_px = pts[idx].copy()
-    overlay.line_px = (to_img(line_uv[0]), to_img(line_uv[1]))
-    overlay.a_px = to_img(a_uv)
-    overlay.b_px = to_img(b_uv)
+    overlay = Overlay(
+        centre_px=(cx, cy),
+        radius_px=r,
+        boundary_px=pts[idx].copy(),
+        line_px=(to_img(line_uv[0]), to_img(line_uv[1])),
+        a_px=to_img(a_uv),
+        b_px=to_img(b_uv),
+    )
     return FrameResult(
         image=name,
-        status=OK,
+        status=Status.OK,
         sinkage_mm=z0 * rig.wheel_radius_mm / r,
         theta1_deg=t1,
         theta2_deg=t2,

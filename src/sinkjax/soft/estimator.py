@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ..app import results as R
 from ..geometry import from_wheel_frame, travel_sign
-from ..rig import Rig, SegmentationParams
+from ..result import FrameResult, Overlay, failed, no_contact
+from ..rig import Rig, SegmentationParams, rect_problem
 from ..status import Status
 from .fit import build_evidence, fit
 from .hough import hough_rim
@@ -185,16 +185,6 @@ def _use_vmap() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> str | None:
-    x, y, w, h = rect
-    if x + w > width or y + h > height:
-        return (
-            f"confidence rectangle {list(rect)} is off the {width}x{height} image; "
-            "fix confidence_rect in the rig file or pass --confidence-rect X,Y,W,H"
-        )
-    return None
-
-
 def estimate_batch(
     images: list[np.ndarray],
     rig: Rig,
@@ -202,7 +192,7 @@ def estimate_batch(
     *,
     pad_to: int | None = None,
     uncertainty: UncertaintyModel | None = None,
-) -> list[R.FrameResult]:
+) -> list[FrameResult]:
     """Soft estimates for frames of one size (uint8 RGB (H, W, 3) each), one row per frame.
 
     ``pad_to`` pads the batch (repeating a frame) so that every call has the same shape and the
@@ -216,9 +206,9 @@ def estimate_batch(
     if any(im.shape != shape for im in images):
         raise ValueError("estimate_batch needs frames of one size; the pipeline groups them")
     height, width = shape[:2]
-    problem = _rect_problem(rig.confidence_rect, height, width)
+    problem = rect_problem(rig.confidence_rect, height, width)
     if problem is not None:
-        return [R.failed(n, R.BAD_RECT, problem) for n in names]
+        return [failed(n, Status.BAD_RECT, problem) for n in names]
     n = len(images)
     args = (rig.segmentation, rig.confidence_rect, rig.travel, float(rig.wheel_radius_mm))
     if _use_vmap():
@@ -229,29 +219,25 @@ def estimate_batch(
         each = [_measure_one(jnp.asarray(im), *args, uncertainty) for im in images]
         out = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *each)
     out = jax.tree_util.tree_map(np.asarray, out)
-    return [_row(out, i, names[i], rig) for i in range(n)]
+    return [frame_result(out, i, names[i], rig) for i in range(n)]
 
 
-def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
+def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig) -> FrameResult:
+    """Frame ``i`` of a batched :class:`SoftEstimate` as the common :class:`FrameResult`
+    (degrees, image px, the overlay geometry)."""
     p = out.params[i].astype(float)
     status = Status.from_code(int(out.status[i]))
     cx, cy, r = float(p[0]), float(p[1]), float(p[2])
-    if status == R.NO_WHEEL:
-        return R.failed(
-            name,
-            R.NO_WHEEL,
-            "no rim circle found: too few wheel-coloured edge pixels on a circle; check the "
-            "confidence rectangle lies on the wheel face and the segmentation thresholds",
-        )
-    if status == R.FIT_FAILED or not np.all(np.isfinite(p)):
-        return R.FrameResult(
+    if status == Status.NO_WHEEL:
+        return failed(name, Status.NO_WHEEL)
+    if status == Status.FIT_FAILED or not np.all(np.isfinite(p)):
+        return FrameResult(
             image=name,
-            status=R.FIT_FAILED,
+            status=Status.FIT_FAILED,
             center_x_px=cx,
             center_y_px=cy,
             radius_px=r,
-            message="the circle-plus-line fit did not converge; the frame may be blurred or "
-            "the soil and wheel colours too similar",
+            message=Status.FIT_FAILED.message,
         )
     sign = travel_sign(rig.travel)
     a = np.asarray(end_point(p[5], p[6], p[2], 1.0))
@@ -262,23 +248,23 @@ def _row(out: SoftEstimate, i: int, name: str, rig: Rig) -> R.FrameResult:
     boundary = np.stack([out.boundary_x_px[i][keep], out.boundary_y_px[i][keep]], -1)
     k, bb = float(p[3]), float(p[4])
     line = None
-    if status == R.OK:
+    if status == Status.OK:
         u0, u1 = float(b[0]), float(a[0])
         line = (
             (cx + sign * u0, cy + k * u0 + bb),
             (cx + sign * u1, cy + k * u1 + bb),
         )
-    overlay = R.Overlay(
+    overlay = Overlay(
         centre_px=(cx, cy),
         radius_px=r,
         boundary_px=boundary,
         line_px=line,
-        a_px=(ax, ay) if status == R.OK else None,
-        b_px=(bx, by) if status == R.OK else None,
+        a_px=(ax, ay) if status == Status.OK else None,
+        b_px=(bx, by) if status == Status.OK else None,
     )
-    if status == R.NO_CONTACT:
-        return R.no_contact(name, (cx, cy), r, overlay)
-    return R.FrameResult(
+    if status == Status.NO_CONTACT:
+        return no_contact(name, (cx, cy), r, overlay)
+    return FrameResult(
         image=name,
         status=status,
         sinkage_mm=float(out.sinkage_mm[i]),

@@ -23,9 +23,10 @@ from jaxtyping import Array, Float, Int
 
 from ..geometry import travel_sign
 from ..rig import SEG_FIELDS, SegmentationParams
-from ..soft.estimator import _FIT_FAILED, SoftEstimate, measure_from_mask
+from ..soft.estimator import SoftEstimate, measure_from_mask
 from ..soft.segmentation import soft_open, wheel_mask
 from ..soft.uncertainty import UncertaintyModel
+from ..status import Status
 
 VALUE_NAMES = (
     "sinkage_mm",
@@ -35,7 +36,7 @@ VALUE_NAMES = (
     "theta1_std_deg",
     "theta2_std_deg",
 )
-FIT_FAILED = _FIT_FAILED
+FIT_FAILED = Status.FIT_FAILED.code
 
 
 def estimate_values(est: SoftEstimate) -> Float[Array, " 6"]:

@@ -1,54 +1,33 @@
-"""Inputs: PATH arguments -> frames, and the rig they are measured with (conventions §2, §3).
+"""Frames: pixels from image files and videos, read lazily, one frame at a time.
 
-A PATH is an image file, a directory of images (sorted by name; a ``rig.toml`` inside is picked
-up) or a video file (streamed frame by frame, never loaded whole). Every frame comes out as a
-:class:`Frame` holding either an RGB uint8 image of shape (H, W, 3) or the reason it has none.
-
-A :class:`FrameSelection` (``--start/--stop/--stride``) picks frames by index: within each video
-(its frame numbers, as in ``video.mp4#000123``), and over the image files of a run taken together
-in input order (all image PATHs and directories form one sequence). Frames left out are never
-decoded into RGB, and frames named in ``skip`` (``--resume``) are passed over the same way.
+Every frame comes out as a :class:`Frame` holding either an RGB uint8 image of shape (H, W, 3) or
+the :class:`~sinkjax.Status` and message saying why it has none. A :class:`FrameSelection`
+(``--start/--stop/--stride``) picks frames by index: within each video (its frame numbers, as in
+``video.mp4#000123``), and over the image files of a run taken together in input order. Frames
+left out are never decoded, and frames named in ``skip`` (``--resume``) are passed over the same
+way.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
-import tomllib
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
-from ..rig import Rig, RigError, rig_from_dict
-from .results import BAD_IMAGE, UNREADABLE
+from ..status import Status
+from .sources import Source, expand_paths
 
 log = logging.getLogger("sinkjax")
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
-RIG_FILENAME = "rig.toml"
 # Smaller frames cannot show a measurable wheel; they get ``bad_image`` before any estimator runs.
 MIN_IMAGE_SIDE_PX = 16
 # Overlay videos of image sequences have no frame rate of their own.
 DEFAULT_FPS = 10.0
-
-
-class InputError(ValueError):
-    """A PATH argument is unusable (missing, unsupported, empty); the message says what to do."""
-
-
-@dataclass(frozen=True)
-class Source:
-    """One input file. ``name`` is its ``image`` column: the PATH as given joined with the file."""
-
-    kind: str  # "image" or "video"
-    path: Path
-    name: str
 
 
 @dataclass
@@ -63,15 +42,6 @@ class Frame:
     status: str = ""
     message: str = ""
     stem: str = ""
-
-
-@dataclass(frozen=True)
-class Inputs:
-    """Expanded PATH arguments: the files in order, and the rig files found in directories."""
-
-    sources: tuple[Source, ...]
-    directory_rigs: tuple[Path, ...]
-    nearby_rigs: tuple[Path, ...]
 
 
 @dataclass(frozen=True)
@@ -121,184 +91,6 @@ class FrameSelection:
 ALL_FRAMES = FrameSelection()
 
 
-def _ext(path: str | Path) -> str:
-    return os.path.splitext(str(path))[1].lower()
-
-
-def is_image_path(path: str | Path) -> bool:
-    return _ext(path) in IMAGE_EXTENSIONS
-
-
-def is_video_path(path: str | Path) -> bool:
-    return _ext(path) in VIDEO_EXTENSIONS
-
-
-def expand_paths(paths: Sequence[str | Path]) -> Inputs:
-    """Expand PATH arguments in order into image and video sources.
-
-    Directories contribute their images sorted by file name (hidden files skipped, not
-    recursive). Raises InputError for a PATH that does not exist, a file that is neither an
-    image nor a video, or when no frames at all are left.
-    """
-    if not paths:
-        raise InputError("no PATH given; pass image files, directories of images or videos")
-    sources: list[Source] = []
-    directory_rigs: list[Path] = []
-    nearby_rigs: list[Path] = []
-    for arg in paths:
-        given = str(arg)
-        p = Path(given)
-        if p.is_dir():
-            rig = p / RIG_FILENAME
-            if rig.is_file():
-                directory_rigs.append(rig)
-            found = _images_in(p, given)
-            if not found:
-                log.warning(
-                    "directory %r contains no images (%s); nothing taken from it",
-                    given,
-                    ", ".join(IMAGE_EXTENSIONS),
-                )
-            sources.extend(found)
-        elif p.is_file():
-            nearby = p.parent / RIG_FILENAME
-            if nearby.is_file() and nearby not in nearby_rigs:
-                nearby_rigs.append(nearby)
-            if is_image_path(p):
-                sources.append(Source("image", p, given))
-            elif is_video_path(p):
-                sources.append(Source("video", p, given))
-            else:
-                hint = ""
-                if p.name == RIG_FILENAME:
-                    hint = f"; to use it pass --rig {given} (or pass its directory as PATH)"
-                raise InputError(
-                    f"{given!r} is neither an image ({', '.join(IMAGE_EXTENSIONS)}) nor a video "
-                    f"({', '.join(VIDEO_EXTENSIONS)}){hint}"
-                )
-        elif p.exists():
-            raise InputError(f"{given!r} is not a regular file or directory")
-        else:
-            raise InputError(f"{given!r} does not exist; check the path")
-    if not sources:
-        raise InputError(
-            "no images or videos found in the given PATHs; a directory must contain image files "
-            f"({', '.join(IMAGE_EXTENSIONS)}) directly (subdirectories are not searched)"
-        )
-    return Inputs(tuple(sources), tuple(directory_rigs), tuple(nearby_rigs))
-
-
-def _images_in(directory: Path, given: str) -> list[Source]:
-    entries = sorted(os.listdir(directory))
-    images = [
-        Source("image", directory / n, os.path.join(given, n))
-        for n in entries
-        if not n.startswith(".") and is_image_path(n) and (directory / n).is_file()
-    ]
-    videos = [n for n in entries if is_video_path(n)]
-    if videos:
-        log.warning(
-            "directory %r: ignored %d video file(s) (%s); pass videos as PATHs themselves",
-            given,
-            len(videos),
-            videos[0] if len(videos) == 1 else f"{videos[0]}, ...",
-        )
-    return images
-
-
-# ---------------------------------------------------------------------------------------------
-# Rig resolution
-
-
-def parse_rect(text: str) -> tuple[int, int, int, int]:
-    """``"X,Y,W,H"`` -> four ints. Raises RigError with the expected form."""
-    parts = [t.strip() for t in text.replace(" ", ",").split(",") if t.strip()]
-    try:
-        values = tuple(int(t) for t in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 4:
-        raise RigError(
-            f"--confidence-rect expects four integers X,Y,W,H (pixels), e.g. 300,120,40,30; "
-            f"got {text!r}"
-        )
-    return values  # type: ignore[return-value]
-
-
-def resolve_rig(
-    inputs: Inputs | None = None,
-    *,
-    rig_path: str | Path | None = None,
-    wheel_radius_mm: float | None = None,
-    confidence_rect: tuple[int, int, int, int] | None = None,
-    travel: str | None = None,
-) -> Rig:
-    """The rig for a run: ``rig_path``, else the first directory's ``rig.toml``, then the flags.
-
-    Each flag that is not None overrides one field. Raises RigError saying what to pass.
-    """
-    flags: dict[str, Any] = {}
-    if wheel_radius_mm is not None:
-        flags["wheel_radius_mm"] = float(wheel_radius_mm)
-    if confidence_rect is not None:
-        flags["confidence_rect"] = list(confidence_rect)
-    if travel is not None:
-        flags["travel"] = travel
-
-    file: Path | None = None
-    if rig_path is not None:
-        file = Path(rig_path)
-        if not file.is_file():
-            raise RigError(f"rig file {str(rig_path)!r} does not exist; check the --rig path")
-    elif inputs is not None and inputs.directory_rigs:
-        file = inputs.directory_rigs[0]
-        _warn_differing_rigs(file, inputs.directory_rigs[1:])
-
-    if file is None and not flags:
-        nearby = ""
-        if inputs is not None and inputs.nearby_rigs:
-            found = inputs.nearby_rigs[0]
-            nearby = f"; there is {found} next to your inputs: pass --rig {found}"
-        raise RigError(
-            "no rig: pass --rig RIG.toml, or put a rig.toml in the image directory, or pass "
-            "--wheel-radius-mm R and --confidence-rect X,Y,W,H (the rim radius in mm and a "
-            f"pixel rectangle that always shows the wheel face){nearby}"
-        )
-    data: dict[str, Any] = {}
-    source = "command line"
-    if file is not None:
-        data = _read_toml(file)
-        source = str(file) + (" with command-line overrides" if flags else "")
-    data.update(flags)
-    return rig_from_dict(data, source=source)
-
-
-def _read_toml(path: Path) -> dict[str, Any]:
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise RigError(f"{path}: not a readable TOML rig file ({e})") from e
-
-
-def _warn_differing_rigs(used: Path, others: Sequence[Path]) -> None:
-    try:
-        first = _read_toml(used)
-    except RigError:
-        return  # reported properly when the rig is built
-    for other in others:
-        try:
-            same = _read_toml(other) == first
-        except RigError:
-            same = False
-        if not same:
-            log.warning(
-                "using rig %s for every PATH; %s differs and is ignored (run its directory "
-                "separately or pass --rig)",
-                used,
-                other,
-            )
-
-
 def check_image_size(shape: tuple[int, ...]) -> str | None:
     """None if an image of ``shape`` is big enough to measure; else why not (``bad_image``)."""
     height, width = int(shape[0]), int(shape[1])
@@ -308,23 +100,6 @@ def check_image_size(shape: tuple[int, ...]) -> str | None:
         f"image is only {width}x{height} px; sinkjax needs at least "
         f"{MIN_IMAGE_SIDE_PX}x{MIN_IMAGE_SIDE_PX} px to find a wheel in it"
     )
-
-
-def check_rect(shape: tuple[int, ...], rig: Rig) -> str | None:
-    """None if the rig's confidence rectangle lies inside an image of ``shape``; else why not."""
-    height, width = int(shape[0]), int(shape[1])
-    x, y, w, h = rig.confidence_rect
-    if x + w <= width and y + h <= height:
-        return None
-    return (
-        f"confidence_rect [{x}, {y}, {w}, {h}] extends beyond the {width}x{height} image "
-        f"(needs x+w <= {width} and y+h <= {height}); fix confidence_rect in the rig or pass "
-        "--confidence-rect X,Y,W,H"
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# Reading pixels
 
 
 def to_rgb8(array: np.ndarray, *, bgr: bool = True) -> np.ndarray:
@@ -437,9 +212,11 @@ def _image_frame(source: Source) -> Frame:
     try:
         image = read_image(source.path)
     except OSError as e:
-        return Frame(source.name, None, UNREADABLE, f"cannot read file: {e.strerror or e}", stem)
+        return Frame(
+            source.name, None, Status.UNREADABLE, f"cannot read file: {e.strerror or e}", stem
+        )
     except ValueError as e:
-        status = BAD_IMAGE if str(e).startswith("unsupported") else UNREADABLE
+        status = Status.BAD_IMAGE if str(e).startswith("unsupported") else Status.UNREADABLE
         return Frame(source.name, None, status, str(e), stem)
     return Frame(source.name, image, stem=stem)
 
@@ -452,7 +229,7 @@ def _video_frames(source: Source, select: FrameSelection, skip: Collection[str])
                 yield Frame(
                     source.name,
                     None,
-                    UNREADABLE,
+                    Status.UNREADABLE,
                     "could not open the video (corrupt, empty, or a codec OpenCV lacks)",
                     source.path.stem,
                 )
@@ -474,7 +251,7 @@ def _video_frames(source: Source, select: FrameSelection, skip: Collection[str])
             try:
                 yield Frame(name, to_rgb8(bgr, bgr=True), stem=stem)
             except ValueError as e:
-                yield Frame(name, None, BAD_IMAGE, str(e), stem)
+                yield Frame(name, None, Status.BAD_IMAGE, str(e), stem)
             index += 1
         expected = capture.get(cv2.CAP_PROP_FRAME_COUNT)
         if index == 0:
@@ -482,7 +259,7 @@ def _video_frames(source: Source, select: FrameSelection, skip: Collection[str])
                 yield Frame(
                     source.name,
                     None,
-                    UNREADABLE,
+                    Status.UNREADABLE,
                     "the video has no decodable frames",
                     source.path.stem,
                 )
@@ -507,13 +284,16 @@ def iter_frames(
     *,
     select: FrameSelection = ALL_FRAMES,
     skip: Collection[str] = frozenset(),
+    first_image_index: int = 0,
 ) -> Iterator[Frame]:
     """Frames of ``sources`` in order, read lazily: one image or one video frame at a time.
 
     ``select`` picks frame indices (see :class:`FrameSelection`); frames whose name is in
     ``skip`` (rows already in a results CSV) are left out without decoding them.
+    ``first_image_index``: the run-wide index of the first image file among ``sources`` (image
+    indices count over all recordings of a run together).
     """
-    image_index = 0
+    image_index = first_image_index
     for source in sources:
         if source.kind == "video":
             yield from _video_frames(source, select, skip)

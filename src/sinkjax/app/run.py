@@ -1,0 +1,192 @@
+"""A run: recordings -> the results CSV (one flushed row per frame), overlays, summary."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+
+from ..result import FrameResult
+from ..rig import Rig
+from ..status import Status
+from .frames import ALL_FRAMES, Frame, FrameSelection, count_frames, frame_rate
+from .overlay import OverlayVideoWriter, OverlayWriter
+from .pipeline import BatchMethod, iter_recordings
+from .results import ResultsWriter
+from .resume import prepare_resume
+from .smoothing import SmoothingOptions, smooth_csv
+from .sources import Inputs, Recording, expand_paths, open_recordings, with_rig
+
+log = logging.getLogger("sinkjax")
+
+
+@dataclass
+class RunSummary:
+    """What a run produced: frames per status, how many had pixels, where the rows went."""
+
+    out: Path | None
+    counts: Counter[str] = field(default_factory=Counter)
+    n_read: int = 0
+    seconds: float = 0.0
+    n_resumed: int = 0  # rows an earlier run had written (``resume``)
+    smoothed: bool = False
+
+    @property
+    def n_frames(self) -> int:
+        return sum(self.counts.values())
+
+    recordings: list[tuple[str, str]] = field(default_factory=list)  # (recording, its rig)
+
+    @property
+    def only_bad_rect(self) -> bool:
+        """Every frame that could be read had its confidence rectangle off the image."""
+        return self.n_read > 0 and self.counts[Status.BAD_RECT] == self.n_read
+
+    def rig_lines(self) -> list[str]:
+        """One line per recording: which rig it was measured with."""
+        return [f"  {name}: rig {source}" for name, source in self.recordings]
+
+    def line(self) -> str:
+        """One line: ``12 frames: 10 ok, 1 no_contact; failed: 1 unreadable -> results.csv``."""
+        measured = [f"{self.counts[Status.OK]} ok"]
+        if self.counts[Status.NO_CONTACT]:
+            measured.append(f"{self.counts[Status.NO_CONTACT]} no_contact")
+        failures = sorted((s, n) for s, n in self.counts.items() if not Status(s).measured)
+        text = f"{self.n_frames} frames: {', '.join(measured)}"
+        text += "; failed: " + (", ".join(f"{n} {s}" for s, n in failures) if failures else "0")
+        if self.seconds > 0 and self.n_frames:
+            text += f" ({self.n_frames / self.seconds:.2f} frames/s)"
+        if self.n_resumed:
+            text += f"; {self.n_resumed} rows kept from the earlier run"
+        if self.smoothed:
+            text += "; smoothed columns added"
+        return text + (f" -> {self.out}" if self.out is not None else "")
+
+
+def estimate_to_csv(
+    paths: Sequence[str | Path] | Inputs,
+    out_csv: str | Path,
+    *,
+    rig: Rig | None = None,
+    rig_path: str | Path | None = None,
+    method: str | BatchMethod = "soft",
+    batch_size: int = 8,
+    overlay_dir: str | Path | None = None,
+    overlay_video: str | Path | None = None,
+    select: FrameSelection = ALL_FRAMES,
+    resume: bool = False,
+    smoothing: SmoothingOptions | None = None,
+    progress: bool = False,
+) -> RunSummary:
+    """Measure every frame of ``inputs`` and write the results CSV, one flushed row per frame.
+
+    ``paths``: PATH arguments, or recordings with their rigs
+    (:func:`sinkjax.app.sources.open_recordings`). For PATHs, ``rig`` (if given) serves every
+    recording; else each uses its own ``rig.toml``, then ``rig_path`` (docs/conventions.md §2).
+    ``overlay_dir``: also write one overlay PNG per readable frame there; ``overlay_video``: an
+    annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
+    :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
+    the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
+    smoothed columns (:mod:`sinkjax.app.smoothing`). ``progress``: a progress bar (frames/s, ETA)
+    on stderr when it is a terminal. Rows already written stay if the run is interrupted.
+    Raises InputError / ValueError / ResumeError / MethodUnavailable / OSError before the first
+    frame for unusable arguments.
+    """
+    from tqdm import tqdm
+
+    if isinstance(paths, Inputs):
+        inputs = paths
+    elif rig is not None:
+        inputs = with_rig(expand_paths(paths), rig)
+    else:
+        inputs = open_recordings(paths, rig_path=rig_path)
+    out = Path(out_csv)
+    check_output(out, inputs)
+    done: set[str] = set()  # filled below; the frames are read lazily, after that
+    pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select, skip=done)
+    video = None
+    if overlay_video is not None:
+        video = OverlayVideoWriter(overlay_video, fps=frame_rate(inputs.sources, select=select))
+    # Only now, with every argument checked, may the output file be touched.
+    if resume:
+        done.update(prepare_resume(out))
+    fresh = not (resume and out.is_file() and out.stat().st_size > 0)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    overlays = OverlayWriter(overlay_dir) if overlay_dir is not None else None
+    if video is not None and done:
+        log.warning(
+            "%s holds only the frames measured in this run (not the %d resumed rows)",
+            overlay_video,
+            len(done),
+        )
+    summary = RunSummary(out=out, n_resumed=len(done))
+    summary.recordings = [(rec.name, rec.rig_source) for rec in inputs.recordings]
+    start = time.perf_counter()
+    total = count_frames(inputs.sources, select=select) if progress else None
+    bar = tqdm(
+        total=total,
+        initial=min(len(done), total or 0),
+        unit=" frames",
+        desc=method if isinstance(method, str) else None,
+        disable=None if progress else True,
+    )
+    try:
+        with open(out, "w" if fresh else "a", newline="", encoding="utf-8") as stream:
+            writer = ResultsWriter(stream, header=fresh)
+            for rec, frame, result in pairs:
+                writer.write(result)
+                summary.counts[result.status] += 1
+                summary.n_read += frame.image is not None
+                _write_overlays(rec, frame, result, overlays, video)
+                bar.update(1)
+    finally:
+        bar.close()
+        if video is not None:
+            video.close()
+    summary.seconds = time.perf_counter() - start
+    if smoothing is not None:
+        smooth_csv(out, out, smoothing)
+        summary.smoothed = True
+    return summary
+
+
+def check_output(out: Path, inputs: Inputs) -> None:
+    """Raise ValueError if the results CSV would overwrite one of the run's input files."""
+    try:
+        target = out.resolve()
+    except OSError:
+        return
+    for source in inputs.sources:
+        try:
+            same = source.path.resolve() == target
+        except OSError:
+            same = False
+        if same:
+            raise ValueError(
+                f"--out {str(out)!r} is one of the inputs ({source.name}); choose another "
+                "results file"
+            )
+
+
+def _write_overlays(
+    rec: Recording,
+    frame: Frame,
+    result: FrameResult,
+    overlays: OverlayWriter | None,
+    video: OverlayVideoWriter | None,
+) -> None:
+    if overlays is not None:
+        try:
+            overlays.write(frame.image, result, frame.stem or Path(frame.name).stem, rec.rig)
+        except (OSError, cv2.error) as e:
+            log.warning("%s: overlay not written (%s)", frame.name, e)
+    if video is not None:
+        try:
+            video.write(frame.image, result, rec.rig)
+        except (OSError, cv2.error) as e:
+            log.warning("%s: overlay video frame not written (%s)", frame.name, e)

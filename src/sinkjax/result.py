@@ -1,0 +1,70 @@
+"""The one per-frame result that every estimator returns (docs/conventions.md §1, §4).
+
+A :class:`FrameResult` is an ``eqx.Module`` (a pytree): the measured numbers are its leaves
+(``None`` where not available), the frame's name, :class:`~sinkjax.Status` and message are static.
+Both the soft and the classic estimator build it; the app layer turns it into a CSV row
+(:func:`sinkjax.app.results.csv_row`) and an overlay (:func:`sinkjax.draw_overlay`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+
+from .status import Status
+
+Point = tuple[float, float]
+
+
+class Overlay(eqx.Module):
+    """What an overlay draws, in IMAGE pixels: rim circle, boundary, line ends, A and B."""
+
+    centre_px: Point
+    radius_px: float
+    boundary_px: np.ndarray | None = None  # (n, 2) x, y
+    line_px: tuple[Point, Point] | None = None
+    a_px: Point | None = None
+    b_px: Point | None = None
+
+
+class FrameResult(eqx.Module):
+    """One frame's measurement: sinkage (mm), angles (degrees), their one-sigma, the rim circle
+    (image px), the status and a message. ``None`` = not available (``*_std_*`` for classic)."""
+
+    image: str = eqx.field(static=True)
+    status: Status = eqx.field(static=True, converter=Status)
+    sinkage_mm: float | None = None
+    sinkage_std_mm: float | None = None
+    theta1_deg: float | None = None
+    theta1_std_deg: float | None = None
+    theta2_deg: float | None = None
+    theta2_std_deg: float | None = None
+    center_x_px: float | None = None
+    center_y_px: float | None = None
+    radius_px: float | None = None
+    message: str = eqx.field(static=True, default="")
+    overlay: Overlay | None = eqx.field(default=None, repr=False)
+
+
+def no_contact(
+    image: str, centre_px: Point, radius_px: float, overlay: Overlay | None
+) -> FrameResult:
+    """docs/conventions.md §1: no contact is sinkage 0 and both angles 0, with no sigma."""
+    return FrameResult(
+        image=image,
+        status=Status.NO_CONTACT,
+        sinkage_mm=0.0,
+        theta1_deg=0.0,
+        theta2_deg=0.0,
+        center_x_px=centre_px[0],
+        center_y_px=centre_px[1],
+        radius_px=radius_px,
+        message=Status.NO_CONTACT.message,
+        overlay=overlay,
+    )
+
+
+def failed(image: str, status: Status | str, message: str = "") -> FrameResult:
+    """A result for a frame that produced no measurement (``message``: the status's default)."""
+    status = Status(status)
+    return FrameResult(image=image, status=status, message=message or status.message)
