@@ -30,7 +30,7 @@ import numpy as np
 
 from sinkjax.app.results import NO_CONTACT, OK
 from sinkjax.classic.estimator import estimate_classic
-from sinkjax.synth.render import recording_scenes, render, rig_for
+from sinkjax.synth import recording_scenes, render, rig_for
 
 FRAMES_PER_RECORDING = 10  # two cycles of the five terrain kinds
 SEED = 20240531

@@ -5,7 +5,7 @@
   15 mm high, a single lamp with its cast shadow), so every experiment shares one confidence
   rectangle and the soft method compiles once per image size.
 - The soil model: Bekker's static sinkage for the paper's Table 1 soil, a slip-sinkage factor,
-  and slip bulldozing (a pile ahead of the wheel, a rut behind it) as :class:`~sinkjax.synth.render.Scene`
+  and slip bulldozing (a pile ahead of the wheel, a rut behind it) as :class:`~sinkjax.synth.Scene`
   terrain fields.
 - :func:`measure`: the classic (paper) and soft methods on rendered frames -> :class:`Record` rows,
   saved as CSV in the cache folder (``exp_uncertainty`` pools them).
@@ -206,7 +206,7 @@ def paper_scene(setup: Setup) -> S.Scene:
     The paper's wheel: R = 140 mm, 28 lugs 15 mm high; a single lamp above-left with the wheel's
     cast shadow on the soil, mild sensor noise, blur and JPEG. At 640x480 the rim radius is 140 px
     (1 px = 1 mm); at 320x240 everything is halved. Every experiment varies only the terrain,
-    wheel phase and lighting of this scene, so :func:`sinkjax.synth.render.rig_for` gives one rig.
+    wheel phase and lighting of this scene, so :func:`sinkjax.synth.rig_for` gives one rig.
     """
     f = setup.width / 640.0
     r = 140.0 * f
@@ -253,7 +253,7 @@ def px_per_mm(scene: S.Scene) -> float:
 
 def place(scene: S.Scene, depth_mm: float, **terrain: Any) -> S.Scene:
     """``scene`` with the wheel's lowest point ``depth_mm`` below the FLAT soil level, plus the
-    given terrain fields (bumps, ruts, roughness; see :class:`sinkjax.synth.render.Scene`). The flat
+    given terrain fields (bumps, ruts, roughness; see :class:`sinkjax.synth.Scene`). The flat
     level is what the paper's displacement sensor measured sinkage from."""
     level = scene.centre_y_px + scene.radius_px - depth_mm * px_per_mm(scene)
     return dataclasses.replace(scene, soil_level_px=level, **terrain)

@@ -20,7 +20,7 @@ import time
 import cv2
 import numpy as np
 
-from sinkjax.synth.render import PRESETS, random_scene, render
+from sinkjax.synth import PRESETS, random_scene, render
 
 
 def main() -> None:

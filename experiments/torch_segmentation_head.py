@@ -35,7 +35,7 @@ from torch import nn
 
 import sinkjax.torch as st
 from sinkjax import Rig, SegmentationParams
-from sinkjax.synth.render import recording_scenes, render, rig_for
+from sinkjax.synth import recording_scenes, render, rig_for
 
 PRESETS = ("shading", "dust", "cast")
 SEED = 20250611

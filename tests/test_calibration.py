@@ -440,7 +440,7 @@ def test_augment_parts() -> None:
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """3 synthetic 'dust' frames (160x120) where the default thresholds are far off."""
-    from sinkjax.synth.render import write_recording
+    from sinkjax.synth import write_recording
 
     out = write_recording(
         tmp_path_factory.mktemp("dust"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import colorsys
 import csv
 import math
 from dataclasses import replace
@@ -14,6 +15,9 @@ import pytest
 from sinkjax import synth as synth
 from sinkjax.geometry import geometry_from_boundary
 from sinkjax.rig import load_rig
+from sinkjax.synth.layers import FACE, RIM, hole_centres
+from sinkjax.synth.presets import camera_setup, with_terrain
+from sinkjax.synth.recording import frame_seed
 
 
 def _plain(scene: synth.Scene) -> synth.Scene:
@@ -38,8 +42,8 @@ def _plain(scene: synth.Scene) -> synth.Scene:
 
 def _scene(kind: str, seed: int, preset: str = "clean", **kw: object) -> synth.Scene:
     rng = np.random.default_rng(seed)
-    base = synth._camera_setup(rng, kw.pop("width", 320), kw.pop("height", 240), preset)  # type: ignore[arg-type]
-    return synth._with_terrain(rng, replace(base, **kw), kind, contact=True)  # type: ignore[arg-type]
+    base = camera_setup(rng, kw.pop("width", 320), kw.pop("height", 240), preset)  # type: ignore[arg-type]
+    return with_terrain(rng, replace(base, **kw), kind, contact=True)  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- reproducibility
@@ -72,7 +76,7 @@ def test_presets_render_with_valid_rig(preset):
     for s in scenes:
         # The rectangle shows nothing but wheel face, whatever the phase, holes, lugs or soil.
         cov = synth.coverage(s)[y : y + h, x : x + w]
-        assert np.all(cov[..., synth._FACE] == 1.0)
+        assert np.all(cov[..., FACE] == 1.0)
         img, truth = synth.render(s, seed=1)
         assert img.shape == (180, 240, 3)
         if truth.contact:
@@ -144,8 +148,7 @@ def _edge_deviations_px(
         d = math.hypot(j - cx, y - cy)
         others = [d - r, d - (r - scene.rim_width_px), d - scene.hub_radius_px]
         others += [
-            math.hypot(j - hx, y - hy) - scene.hole_radius_px
-            for hx, hy in synth._hole_centres(scene)
+            math.hypot(j - hx, y - hy) - scene.hole_radius_px for hx, hy in hole_centres(scene)
         ]
         if min(abs(o) for o in others) < 6 or y > scene.height - 6:
             continue
@@ -204,9 +207,9 @@ def test_coverage_is_the_area_of_the_rim_disc():
         rim_width_px=8.0,
     )
     cov = synth.coverage(scene)
-    inside = cov[..., synth._FACE] + cov[..., synth._RIM]
+    inside = cov[..., FACE] + cov[..., RIM]
     assert inside.sum() == pytest.approx(math.pi * 60.3**2, rel=2e-4)
-    assert cov[..., synth._RIM].sum() == pytest.approx(math.pi * (60.3**2 - 52.3**2), rel=1e-3)
+    assert cov[..., RIM].sum() == pytest.approx(math.pi * (60.3**2 - 52.3**2), rel=1e-3)
 
 
 # ----------------------------------------------------------------------------- truth sanity
@@ -291,9 +294,9 @@ def test_no_contact_frames_are_zero():
     assert not t.contact
     assert (t.sinkage_mm, t.theta1_deg, t.theta2_deg, t.sinkage_px, t.k, t.b_px) == (0,) * 6
     rng = np.random.default_rng(0)
-    base = synth._camera_setup(rng, 320, 240, "full")
+    base = camera_setup(rng, 320, 240, "full")
     for kind in synth.TERRAINS:
-        s = synth._with_terrain(rng, base, kind, contact=False)
+        s = with_terrain(rng, base, kind, contact=False)
         assert not synth.true_geometry(s).contact
         assert synth.n_rim_crossings(s) == 0
 
@@ -306,7 +309,7 @@ def test_random_scenes_spread_sinkage_and_wheel_colours():
     assert 0.8 * len(scenes) < z.size < len(scenes)
     assert 0.04 < np.mean(z < 5) < 0.25
     assert z.max() < 60 and np.mean(z < 50) > 0.9
-    hues = [synth.colorsys.rgb_to_hsv(*s.wheel_rgb)[0] * 360 for s in scenes]
+    hues = [colorsys.rgb_to_hsv(*s.wheel_rgb)[0] * 360 for s in scenes]
     assert any(h < 8 or h > 352 for h in hues)  # red, across the hue wrap
     for s in scenes:
         r = s.radius_px
@@ -353,6 +356,6 @@ def test_write_recording(tmp_path):
     scenes = synth.recording_scenes(
         np.random.default_rng(0), 2, preset="clean", width=200, height=150, travel="left"
     )
-    img, _ = synth.render(scenes[1], synth._frame_seed(0, 1))
+    img, _ = synth.render(scenes[1], frame_seed(0, 1))
     disk = cv2.imread(str(clean / "frame_0001.png"))[..., ::-1]
     assert np.array_equal(img, disk)

@@ -19,7 +19,7 @@ from sinkjax import SegmentationParams  # noqa: E402
 from sinkjax.soft.colour import rgb_to_hsi as jax_rgb_to_hsi  # noqa: E402
 from sinkjax.soft.estimator import measure  # noqa: E402
 from sinkjax.soft.segmentation import smooth, soft_open, wheel_mask  # noqa: E402
-from sinkjax.synth.render import recording_scenes, render, rig_for  # noqa: E402
+from sinkjax.synth import recording_scenes, render, rig_for  # noqa: E402
 from sinkjax.torch.jax_bridge import (  # noqa: E402
     estimate_values,
     measure_from_mask,

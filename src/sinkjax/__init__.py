@@ -61,7 +61,7 @@ from .soft.segmentation import (
 )
 from .soft.uncertainty import UncertaintyModel as UncertaintyModel
 from .status import Status as Status
-from .synth.render import (
+from .synth import (
     Scene as Scene,
     Truth as Truth,
     random_scene as random_scene,

@@ -105,7 +105,7 @@ def run_demo(
     Writes ``results.csv``, ``overlays/`` and ``accuracy.png`` in ``out_dir``. Raises
     MethodUnavailable if ``method`` cannot be imported.
     """
-    from ..synth.render import write_recording
+    from ..synth import write_recording
 
     out = Path(out_dir)
     recording = Path(
