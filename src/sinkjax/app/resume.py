@@ -42,8 +42,8 @@ def _strip_columns(path: Path, n_columns: int) -> None:
     """Rewrite ``path`` keeping its first ``n_columns`` columns (atomically)."""
     tmp = path.with_name(f".{path.name}.resume.tmp")
     with (
-        open(path, newline="", encoding="utf-8") as src,
-        open(tmp, "w", newline="", encoding="utf-8") as dst,
+        open(path, newline="", encoding="utf-8", errors="surrogateescape") as src,
+        open(tmp, "w", newline="", encoding="utf-8", errors="surrogateescape") as dst,
     ):
         writer = csv.writer(dst, lineterminator="\n")
         for row in csv.reader(src):
@@ -62,7 +62,7 @@ def prepare_resume(out_csv: str | Path) -> set[str]:
     if not path.is_file():
         return set()
     _truncate_partial_row(path)
-    with open(path, newline="", encoding="utf-8") as f:
+    with open(path, newline="", encoding="utf-8", errors="surrogateescape") as f:
         reader = csv.reader(f)
         header = next(reader, None)
         if header is None:

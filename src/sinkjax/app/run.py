@@ -136,7 +136,9 @@ def estimate_to_csv(
         disable=None if progress else True,
     )
     try:
-        with open(out, "w" if fresh else "a", newline="", encoding="utf-8") as stream:
+        with open(
+            out, "w" if fresh else "a", newline="", encoding="utf-8", errors="surrogateescape"
+        ) as stream:
             writer = ResultsWriter(stream, header=fresh)
             for rec, frame, result in pairs:
                 writer.write(result)

@@ -201,7 +201,7 @@ class NotAResultsCsv(ValueError):
 
 def read_results(path: str | Path) -> tuple[list[str], list[dict[str, str]]]:
     """Header and rows of a results CSV. Raises NotAResultsCsv unless it starts with COLUMNS."""
-    with open(path, newline="", encoding="utf-8") as f:
+    with open(path, newline="", encoding="utf-8", errors="surrogateescape") as f:
         reader = csv.DictReader(f)
         header = list(reader.fieldnames or [])
         if tuple(header[: len(COLUMNS)]) != COLUMNS:
@@ -229,7 +229,7 @@ def smooth_csv(
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     try:
-        with os.fdopen(fd, "w", newline="", encoding="utf-8") as f:
+        with os.fdopen(fd, "w", newline="", encoding="utf-8", errors="surrogateescape") as f:
             writer = csv.writer(f, lineterminator="\n")
             writer.writerow((*COLUMNS, *SMOOTH_COLUMNS))
             for row, extra in zip(rows, smoothed, strict=True):

@@ -1,0 +1,59 @@
+"""Careless or unlucky input: odd file names, rigs with a BOM or a misspelt key, --out on an input."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sinkjax.app.cli import main
+from sinkjax.rig import RigError, load_rig
+
+FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "1,1,4,4", "--method", "classic"]
+
+
+def _png(path: Path | bytes) -> None:
+    ok, buf = cv2.imencode(".png", np.full((40, 60, 3), 90, np.uint8))
+    assert ok
+    with open(path, "wb") as f:
+        f.write(buf.tobytes())
+
+
+def test_non_utf8_file_name_is_written_losslessly(tmp_path, capsys):
+    raw = os.fsencode(tmp_path) + b"/bad\xff\xfename.png"
+    _png(raw)
+    _png(tmp_path / "good.png")
+    out = tmp_path / "r.csv"
+    assert main(["estimate", str(tmp_path), "--out", str(out), *FLAGS]) == 0
+    data = out.read_bytes().splitlines()
+    # Both frames have a row; the undecodable name comes back as the same bytes.
+    assert len(data) == 3
+    assert data[1].startswith(raw + b",") and data[2].startswith(os.fsencode(tmp_path / "good.png"))
+    # --resume reads it back and finds nothing left to do.
+    assert main(["estimate", str(tmp_path), "--out", str(out), "--resume", *FLAGS]) == 0
+    assert out.read_bytes().splitlines() == data
+    assert "nothing left to measure" in capsys.readouterr().out
+
+
+def test_out_naming_an_input_is_refused_and_the_input_kept(tmp_path, capsys):
+    _png(tmp_path / "a.png")
+    before = (tmp_path / "a.png").read_bytes()
+    code = main(["estimate", str(tmp_path), "--out", str(tmp_path / "a.png"), *FLAGS])
+    assert code == 2
+    assert "is one of the inputs" in capsys.readouterr().err
+    assert (tmp_path / "a.png").read_bytes() == before
+
+
+def test_rig_with_bom_and_misspelt_key(tmp_path):
+    good = 'wheel_radius_mm = 140.0\nconfidence_rect = [1, 2, 3, 4]\ntravel = "left"\n'
+    (tmp_path / "bom.toml").write_bytes(b"\xef\xbb\xbf" + good.encode())
+    assert load_rig(tmp_path / "bom.toml").travel == "left"
+    (tmp_path / "typo.toml").write_text(good.replace("travel", "travle"))
+    with pytest.raises(RigError, match=r"unknown key 'travle'; did you mean 'travel'\?"):
+        load_rig(tmp_path / "typo.toml")
+    (tmp_path / "seg.toml").write_text(good + "[segmentation]\np_a_hu = 1.2\n")
+    with pytest.raises(RigError, match=r"unknown \[segmentation\] key 'p_a_hu'.*'p_a_hue'"):
+        load_rig(tmp_path / "seg.toml")
