@@ -9,7 +9,7 @@ turns these batched, jitted functions into a ``torch.autograd.Function``.
 Batched functions take torch's layout, images ``(B, 3, H, W)`` and masks ``(B, 1, H, W)``, so the
 tensors can cross by DLPack without a copy; the transpose to channel-last happens inside XLA.
 They return ``values (B, 6)``: z0 (mm), theta1 (deg), theta2 (deg) and their one-sigma, in that
-order, and ``status (B,)`` (indices into :data:`sinkjax.soft.estimator.STATUS_CODES`).
+order, and ``status (B,)`` (:attr:`sinkjax.Status.code` of each frame's outcome).
 """
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ from jaxtyping import Array, Float, Int
 
 from ..geometry import travel_sign
 from ..rig import SEG_FIELDS, SegmentationParams
-from ..soft.estimator import _FIT_FAILED, SoftEstimate, measure_from_mask
+from ..soft.estimator import SoftEstimate, measure_from_mask
 from ..soft.segmentation import soft_open, wheel_mask
 from ..soft.uncertainty import UncertaintyModel
+from ..status import Status
 
 VALUE_NAMES = (
     "sinkage_mm",
@@ -35,7 +36,7 @@ VALUE_NAMES = (
     "theta1_std_deg",
     "theta2_std_deg",
 )
-FIT_FAILED = _FIT_FAILED
+FIT_FAILED = Status.FIT_FAILED.code
 
 
 def estimate_values(est: SoftEstimate) -> Float[Array, " 6"]:
