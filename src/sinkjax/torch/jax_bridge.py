@@ -9,7 +9,7 @@ turns these batched, jitted functions into a ``torch.autograd.Function``.
 Batched functions take torch's layout, images ``(B, 3, H, W)`` and masks ``(B, 1, H, W)``, so the
 tensors can cross by DLPack without a copy; the transpose to channel-last happens inside XLA.
 They return ``values (B, 6)``: z0 (mm), theta1 (deg), theta2 (deg) and their one-sigma, in that
-order, and ``status (B,)`` (indices into :data:`sinkjax.soft.estimator.STATUS_CODES`).
+order, and ``status (B,)`` (:attr:`sinkjax.Status.code` of each frame's outcome).
 """
 
 from __future__ import annotations
