@@ -13,18 +13,15 @@ import math
 import numpy as np
 import pytest
 
+from sinkjax.classic.estimator import _geometry_padded, estimate_classic
+from sinkjax.classic.outline import hough_bin_px, hough_rim_np, rim_points, rim_scatter_px
+from sinkjax.classic.segmentation import confidence_means_np, hard_mask, rgb_to_hsi_np
+from sinkjax.geometry import rim_radius_range_px
+from sinkjax.rig import Rig, SegmentationParams
 from sinkjax.status import Status
 
 BAD_IMAGE, BAD_RECT, FIT_FAILED = Status.BAD_IMAGE, Status.BAD_RECT, Status.FIT_FAILED
 NO_CONTACT, NO_WHEEL, OK = Status.NO_CONTACT, Status.NO_WHEEL, Status.OK
-from sinkjax.classic.estimator import (
-    _geometry_padded,
-    confidence_means,
-    estimate_classic,
-    hard_mask,
-    rgb_to_hsi_np,
-)
-from sinkjax.rig import Rig, SegmentationParams
 
 WHEEL_RGB = (200, 40, 35)  # red: hue straddles 0/360
 SOIL_RGB = (190, 165, 120)
@@ -161,7 +158,7 @@ def test_hsi_grey_and_black_are_finite_and_silent():
 def test_confidence_means_is_circular_for_red():
     h = np.array([[350.0, 10.0, 355.0, 5.0]])
     s = np.array([[0.2, 0.4, 0.6, 0.8]])
-    h_w, s_w = confidence_means(h, s, (0, 0, 4, 1))
+    h_w, s_w = confidence_means_np(h, s, (0, 0, 4, 1))
     assert min(h_w, 360.0 - h_w) < 1e-9  # the arithmetic mean would be 180 (cyan)
     assert s_w == pytest.approx(0.5)
 
@@ -169,13 +166,13 @@ def test_confidence_means_is_circular_for_red():
 @pytest.mark.parametrize("rect", [(-1, 0, 2, 1), (3, 0, 2, 1), (0, 0, 4, 2), (0, 0, 0, 1)])
 def test_confidence_means_rejects_rect_off_image(rect):
     with pytest.raises(ValueError, match="confidence rect"):
-        confidence_means(np.zeros((1, 4)), np.zeros((1, 4)), rect)
+        confidence_means_np(np.zeros((1, 4)), np.zeros((1, 4)), rect)
 
 
 def test_hard_mask_on_red_wheel():
     img = draw_wheel(ss=1)
     h, s, _ = rgb_to_hsi_np(img)
-    h_w, s_w = confidence_means(h, s, (150, 60, 24, 18))
+    h_w, s_w = confidence_means_np(h, s, (150, 60, 24, 18))
     assert min(h_w, 360.0 - h_w) < 5.0
     mask = hard_mask(h, s, h_w, s_w, SegmentationParams())
     wheel = np.all(img == WHEEL_RGB, axis=-1)
@@ -190,6 +187,34 @@ def test_hard_mask_band_wraps_around_zero():
 
 
 # --------------------------------------------------------------------------------------------
+# Rim points (shared by the Hough polish, the boundary margin and the refined rim)
+
+
+def test_rim_points_keep_rim_drop_lug_tips_and_flanks():
+    cx, cy, r = 50.0, 40.0, 30.0
+    a = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    out = np.column_stack([np.cos(a), np.sin(a)])
+    # Residuals: inside the band, near its two ends, just beyond each end, a lug tip 3 px out.
+    e = np.array([0.0, 0.4, -0.7, -1.49, 0.99, -1.51, 1.01, 3.0, 0.2, -0.3, 0.5, 0.1])
+    pts = np.array([cx, cy]) + (r + e)[:, None] * out
+    normals = -out
+    # A lug flank: on the circle, but its normal 45 degrees off radial (cos 45 < 0.8).
+    c, s_ = math.cos(math.pi / 4), math.sin(math.pi / 4)
+    normals[8] = [c * normals[8, 0] - s_ * normals[8, 1], s_ * normals[8, 0] + c * normals[8, 1]]
+    sel, res = rim_points(pts, normals, cx, cy, r)
+    np.testing.assert_allclose(res, e, atol=1e-12)
+    expected = [True, True, True, True, True, False, False, False, False, True, True, True]
+    np.testing.assert_array_equal(sel, expected)
+    # 8 rim points < 10: too few to tell, the default scatter.
+    assert rim_scatter_px(pts, normals, cx, cy, r) == 0.5
+    pts2 = np.concatenate([pts, pts[:5]])
+    kept = np.concatenate([e[expected], e[:5]])
+    mad = 1.4826 * np.median(np.abs(kept - np.median(kept)))
+    normals2 = np.concatenate([normals, normals[:5]])
+    assert rim_scatter_px(pts2, normals2, cx, cy, r) == pytest.approx(mad, abs=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
 # Hough and the whole pipeline on drawn wheels
 
 CX, CY, R_PX = 160.3, 100.6, 85.4  # draw_wheel's defaults
@@ -198,6 +223,22 @@ STRAIGHT_SOILS = [(165.2, 0.0), (150.7, 0.0), (160.4, 0.15), (170.9, -0.1)]
 
 def straight_soil(y0: float, slope: float):
     return lambda x: y0 + slope * (x - CX)
+
+
+def test_hough_spans_the_whole_plausible_radius_range():
+    # 0.12-0.75 of min(H, W) in half-bin radius steps: more radius bins (152) than one OpenCV
+    # filter call takes channels (128 in OpenCV 5). The rim, not the concentric lug tips 8 % out.
+    a = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)
+    out = np.column_stack([np.cos(a), np.sin(a)])
+    pts = np.concatenate([[CX, CY] + R_PX * out, [CX, CY] + 1.08 * R_PX * out])
+    r_range = rim_radius_range_px(H, W)
+    assert r_range == pytest.approx((0.12 * H, 0.75 * H))
+    found = hough_rim_np(pts, -np.concatenate([out, out]), (H, W), r_range)
+    assert found is not None
+    bin_px = hough_bin_px(H, W)
+    assert found[0] == pytest.approx(CX, abs=bin_px / 2)
+    assert found[1] == pytest.approx(CY, abs=bin_px / 2)
+    assert found[2] == pytest.approx(R_PX, abs=bin_px / 2)
 
 
 @pytest.mark.parametrize(("n_lugs", "lug_h"), [(0, 0.0), (24, 8.0), (30, 3.0), (12, 8.5)])

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from sinkjax.app.frames import Frame, iter_frames, read_image, to_rgb8
-from sinkjax.app.sources import InputError, expand_paths, parse_rect, resolve_rig
 from sinkjax.app.overlay import OverlayWriter, draw_overlay, overlay_name
 from sinkjax.app.pipeline import estimate_paths, estimate_stream, iter_estimates, load_method
 from sinkjax.app.plots import match_truth, plot_accuracy
+from sinkjax.app.sources import InputError, expand_paths, parse_rect, resolve_rig
 from sinkjax.result import FrameResult, Overlay
 from sinkjax.rig import Rig, RigError, rect_problem
 

@@ -19,10 +19,10 @@ import pytest
 from sinkjax.app import pipeline as _pipeline
 from sinkjax.app.cli import main
 from sinkjax.app.frames import FrameSelection, count_frames, iter_frames
-from sinkjax.app.sources import expand_paths
 from sinkjax.app.results import COLUMNS
-from sinkjax.result import FrameResult
 from sinkjax.app.smoothing import SMOOTH_COLUMNS
+from sinkjax.app.sources import expand_paths
+from sinkjax.result import FrameResult
 
 RIG_FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]
 

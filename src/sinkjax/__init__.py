@@ -26,7 +26,7 @@ from .calibration.calibrate import (
     calibrate as calibrate,
     read_labels as read_labels,
 )
-from .classic.estimator import estimate_classic as estimate_classic, rgb_to_hsi_np as rgb_to_hsi_np
+from .classic import estimate_classic as estimate_classic, rgb_to_hsi_np as rgb_to_hsi_np
 from .geometry import (
     SinkageGeometry as SinkageGeometry,
     entry_angle_rad as entry_angle_rad,

@@ -23,6 +23,16 @@ def travel_sign(travel: str) -> float:
     raise ValueError(f"travel must be 'right' or 'left', got {travel!r}")
 
 
+def rim_radius_range_px(height: int, width: int) -> tuple[float, float]:
+    """Plausible rim radii (px) in a ``height`` x ``width`` image: 0.12 to 0.75 of min(H, W).
+
+    The camera set-up this tool is for (docs/paper.md) shows the wheel filling a good part of the
+    frame while fitting mostly inside it; a circle outside this range is not the rim.
+    """
+    m = min(height, width)
+    return 0.12 * m, 0.75 * m
+
+
 def to_wheel_frame(
     x_px: Float[ArrayLike, "*n"],
     y_px: Float[ArrayLike, "*n"],

@@ -156,9 +156,9 @@ def rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> st
     if x >= 0 and y >= 0 and w >= 1 and h >= 1 and x + w <= width and y + h <= height:
         return None
     return (
-        f"confidence_rect [{x}, {y}, {w}, {h}] extends beyond the {width}x{height} image "
-        f"(needs x+w <= {width} and y+h <= {height}); fix confidence_rect in the rig or pass "
-        "--confidence-rect X,Y,W,H"
+        f"the confidence rectangle [x, y, w, h] = [{x}, {y}, {w}, {h}] is not inside the "
+        f"{width}x{height} image (needs x, y >= 0, w, h >= 1, x+w <= {width} and "
+        f"y+h <= {height}); fix confidence_rect in the rig or pass --confidence-rect X,Y,W,H"
     )
 
 

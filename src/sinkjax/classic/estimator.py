@@ -1,19 +1,23 @@
 """The paper's classic pipeline, step by step, in float64 NumPy and OpenCV (no gradients).
 
-"The Processes of Sinkage Detection", as written (``estimate_classic(image, rig)``):
+"The Processes of Sinkage Detection" (docs/paper.md), as written, one module per stage
+(``estimate_classic(image, rig)`` runs them in order):
 
-1. confidence rectangle on the wheel face (the rig's ``confidence_rect``);
-2. RGB -> HSI (:func:`rgb_to_hsi_np`, the textbook arccos formula, not OpenCV's HSV);
-3. H_w, S_w over the rectangle (Eqs. 4-5, :func:`confidence_means`), H and S ranges from P_a/P_d,
-   binary image (:func:`hard_mask`), then dilation, erosion, area filtering and filling of the
-   enclosed holes (:mod:`sinkjax.classic.outline`);
+1. confidence rectangle on the wheel face (the rig's ``confidence_rect``, docs/conventions.md §2);
+2. RGB -> HSI (:func:`~sinkjax.classic.segmentation.rgb_to_hsi_np`, the textbook arccos formula,
+   not OpenCV's HSV);
+3. H_w, S_w over the rectangle (Eqs. 4-5), H and S ranges from P_a/P_d, binary image, then
+   dilation, erosion, area filtering and filling of the enclosed holes
+   (:mod:`sinkjax.classic.segmentation`);
 4. the wheel outline (external contour, integer pixel centres), a 3-D Hough transform of it into
-   (cx, cy, r) space for the rim circle, and the wheel-soil boundary = outline points closer to O
-   than r (less a margin for the outline's pixel staircase along the rim);
-5. Eqs. 1-3 (:func:`sinkjax.geometry.geometry_from_boundary`): plain least squares of the
-   boundary points, A and B the boundary's extreme points on the entry and exit sides.
+   (cx, cy, r) space for the rim circle (:mod:`sinkjax.classic.outline`), and the wheel-soil
+   boundary = outline points closer to O than r (less a margin for the outline's pixel staircase
+   along the rim);
+5. Eqs. 1-3 (:func:`sinkjax.geometry.geometry_from_boundary`, docs/conventions.md §1): plain
+   least squares of the boundary points, A and B the boundary's extreme points on the entry and
+   exit sides.
 
-The hue band is circular (see ``_rig.HUE_SCALE_DEG``), the Hough rim is the inner envelope of the
+The hue band is circular (see ``rig.HUE_SCALE_DEG``), the Hough rim is the inner envelope of the
 outline (lugs stick out beyond it), and boundary runs that barely dip inside the margin over a
 short stretch are rim noise, not soil (the paper extracts the boundary "according to its
 morphological features"); otherwise this is the paper's method, the baseline that every other
@@ -34,114 +38,44 @@ import math
 import jax
 import numpy as np
 
-from ..geometry import SinkageGeometry, geometry_from_boundary, travel_sign
+from ..geometry import (
+    SinkageGeometry,
+    geometry_from_boundary,
+    rim_radius_range_px,
+    travel_sign,
+)
 from ..result import FrameResult, Overlay, failed, no_contact
-from ..rig import HUE_SCALE_DEG, Rig, SegmentationParams
+from ..rig import Rig
 from ..status import Status
 from .outline import (
-    fill_holes,
-    hough_rim,
+    hough_bin_px,
+    hough_rim_np,
     off_border,
     refine_rim,
     rim_scatter_px,
     runs_of,
     wheel_outline,
-    wheel_region,
 )
 from .refine import ends_on_rim, refined_outline, x_extent_weights
+from .segmentation import (
+    check_rect,
+    confidence_means_np,
+    fill_holes,
+    hard_mask,
+    rgb_to_hsi_np,
+    wheel_region,
+)
 
-# Plausible rim radius as a fraction of min(H, W): a wheel that fills less or more of the frame is
-# not the camera set-up this method is for.
-R_MIN_FRAC = 0.15
-R_MAX_FRAC = 0.6
 # Least margin (px) inside the rim for an outline point to count as wheel-soil boundary; it grows
 # with the scatter of the rim's outline points (staircase, noise, JPEG), see estimate_classic.
 BOUNDARY_MARGIN_PX = 0.75
 _MIN_WHEEL_PIXELS = 200
-
-
-# --------------------------------------------------------------------------------------------
-# Step 2: colour
-
-
-def rgb_to_hsi_np(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """RGB -> the paper's HSI (textbook arccos hue), float64.
-
-    ``rgb``: (H, W, 3) uint8, or float in [0, 1]. Returns H in degrees [0, 360), S and I in [0, 1],
-    each (H, W). Grey pixels (R = G = B) get H = 0, black pixels S = 0; never NaN, never warns.
-    Raises ValueError if the last axis is not 3.
-    """
-    a = np.asarray(rgb)
-    if a.ndim < 1 or a.shape[-1] != 3:
-        raise ValueError(f"rgb must have shape (..., 3), got {a.shape}")
-    x = a.astype(np.float64) / 255.0 if a.dtype == np.uint8 else a.astype(np.float64)
-    r, g, b = np.moveaxis(x, -1, 0).copy()  # contiguous planes: faster than strided channels
-    rg, rb = r - g, r - b
-    num = 0.5 * (rg + rb)
-    # (R-G)^2 + (R-B)(G-B) = R^2+G^2+B^2-RG-RB-GB >= 0, zero only for grey.
-    den = np.sqrt(np.maximum(rg * rg + rb * (g - b), 0.0))
-    grey = den <= 1e-12
-    theta = np.degrees(np.arccos(np.clip(num / np.where(grey, 1.0, den), -1.0, 1.0)))
-    h = np.where(b <= g, theta, 360.0 - theta)
-    h[grey | (h >= 360.0)] = 0.0
-    total = r + g + b
-    dark = total <= 1e-12
-    s = 1.0 - 3.0 * np.minimum(np.minimum(r, g), b) / np.where(dark, 1.0, total)
-    s[dark] = 0.0
-    return h, np.clip(s, 0.0, 1.0), total / 3.0
-
-
-# --------------------------------------------------------------------------------------------
-# Step 3: confidence means and the binary image
-
-
-def _check_rect(
-    rect: tuple[int, int, int, int], shape: tuple[int, ...]
-) -> tuple[int, int, int, int]:
-    x, y, w, h = (int(v) for v in rect)
-    height, width = shape[:2]
-    if w < 1 or h < 1 or x < 0 or y < 0 or x + w > width or y + h > height:
-        raise ValueError(
-            f"confidence rect [x, y, w, h] = {[x, y, w, h]} is not inside the {width}x{height} "
-            "image; choose a rectangle on the wheel face that lies fully inside the frame"
-        )
-    return x, y, w, h
-
-
-def confidence_means(
-    h_deg: np.ndarray, s: np.ndarray, rect: tuple[int, int, int, int]
-) -> tuple[float, float]:
-    """Eqs. 4-5: mean hue H_w (degrees, [0, 360)) and saturation S_w over ``rect`` = (x, y, w, h).
-
-    ``h_deg``, ``s``: (H, W). The hue mean is circular (a red wheel straddles 0/360, where the
-    arithmetic mean of Eq. 4 would land on cyan). Raises ValueError if ``rect`` is not fully inside
-    the image.
-    """
-    x, y, w, h = _check_rect(rect, np.shape(h_deg))
-    hh = np.radians(np.asarray(h_deg, dtype=np.float64)[y : y + h, x : x + w])
-    h_w = math.degrees(math.atan2(float(np.mean(np.sin(hh))), float(np.mean(np.cos(hh)))))
-    s_w = float(np.mean(np.asarray(s, dtype=np.float64)[y : y + h, x : x + w]))
-    return h_w % 360.0, s_w
-
-
-def hard_mask(
-    h_deg: np.ndarray, s: np.ndarray, h_w_deg: float, s_w: float, seg: SegmentationParams
-) -> np.ndarray:
-    """The paper's binary image: pixels whose H and S lie in the P_d/P_a ranges. (H, W) bool.
-
-    Hue: wrap(H - H_w) in [(p_d_hue - 1) * 180, (p_a_hue - 1) * 180] degrees (circular band, see
-    ``_rig.HUE_SCALE_DEG``). Saturation: S in [p_d_sat * S_w, p_a_sat * S_w].
-    """
-    d = np.mod(np.asarray(h_deg, dtype=np.float64) - h_w_deg + 180.0, 360.0) - 180.0
-    lo_h = (float(seg.p_d_hue) - 1.0) * HUE_SCALE_DEG
-    hi_h = (float(seg.p_a_hue) - 1.0) * HUE_SCALE_DEG
-    s = np.asarray(s, dtype=np.float64)
-    return (
-        (d >= lo_h)
-        & (d <= hi_h)
-        & (s >= float(seg.p_d_sat) * s_w)
-        & (s <= float(seg.p_a_sat) * s_w)
-    )
+# Radii (fractions of min(H, W)) the Hough accumulator spans: a search window inside the plausible
+# rim radii of rim_radius_range_px, which alone decides whether a rim is accepted. The radius bins
+# are laid out from the window's lower end, so spanning the whole plausible range instead would
+# move every bin and, through the peak's sub-bin estimate and the rim polish that starts from it,
+# change the baseline's numbers (paper mode: 4 of the 160 benchmark frames, up to 0.07 mm, 0.3 deg).
+HOUGH_WINDOW_FRAC = (0.15, 0.6)
 
 
 # --------------------------------------------------------------------------------------------
@@ -209,12 +143,12 @@ def estimate_classic(
     height, width = img.shape[:2]
     # Step 1: the confidence rectangle.
     try:
-        rect = _check_rect(rig.confidence_rect, img.shape)
+        rect = check_rect(rig.confidence_rect, img.shape)
     except ValueError as e:
         return failed(name, Status.BAD_RECT, str(e))
     # Step 2: HSI. Step 3: means, ranges, binary image, morphology.
     h_deg, s, _ = rgb_to_hsi_np(img)
-    h_w, s_w = confidence_means(h_deg, s, rect)
+    h_w, s_w = confidence_means_np(h_deg, s, rect)
     mask = hard_mask(h_deg, s, h_w, s_w, rig.segmentation)
     region = wheel_region(mask, rect)
     if region is None or np.count_nonzero(region) < _MIN_WHEEL_PIXELS:
@@ -233,17 +167,18 @@ def estimate_classic(
             name, Status.NO_WHEEL, "the wheel region's outline is too short to hold a rim"
         )
     m = min(height, width)
-    r_range = (R_MIN_FRAC * m, R_MAX_FRAC * m)
-    coarse = hough_rim(contour[inner], normals[inner], (height, width), r_range)
+    window = (HOUGH_WINDOW_FRAC[0] * m, HOUGH_WINDOW_FRAC[1] * m)
+    coarse = hough_rim_np(contour[inner], normals[inner], (height, width), window)
     if coarse is None:
         return failed(
             name, Status.FIT_FAILED, "the Hough transform found no rim circle in the outline"
         )
-    bc = max(2.0, m / 120.0)
+    bc = hough_bin_px(height, width)
     cx, cy, r, n_in = refine_rim(
         contour[inner], normals[inner], coarse[0], coarse[1], coarse[2], band0_px=2.0 * bc
     )
-    if not (np.isfinite([cx, cy, r]).all() and r_range[0] * 0.9 <= r <= r_range[1] * 1.1):
+    r_min, r_max = rim_radius_range_px(height, width)
+    if not (np.isfinite([cx, cy, r]).all() and r_min <= r <= r_max):
         return failed(name, Status.FIT_FAILED, f"rim fit diverged (r = {r:.1f} px)")
     if n_in < 0.1 * 2.0 * math.pi * r:
         return failed(

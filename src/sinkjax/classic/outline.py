@@ -1,11 +1,12 @@
-"""Classic pipeline, steps 3-4: the cleaned binary image, its outline and the 3-D Hough rim.
+"""Classic pipeline, step 4: the wheel region's outline, its 3-D Hough rim and the rim's points.
 
-Float64 NumPy and OpenCV, no gradients. Everything here is the paper's method as written (binary
-image -> "dilation, erosion, area filtering and so on" -> outline of the wheel area -> Hough rim
--> the outline points closer to O than r), with the care that a pixel outline needs: the Hough
-votes go along the outline's inward normal, and its peak is polished by a least-squares fit that
-keeps only the inner envelope, so lugs never pull the rim outwards. The refinements beyond the
-paper (sub-pixel edges, cut-open holes, ...) live in :mod:`sinkjax.classic.refine`.
+Float64 NumPy and OpenCV, no gradients (the soft counterpart is :mod:`sinkjax.soft.hough`).
+Everything here is the paper's method as written (outline of the wheel area -> Hough rim -> the
+outline points closer to O than r), with the care that a pixel outline needs: the Hough votes go
+along the outline's inward normal, and its peak is polished by a least-squares fit that keeps
+only the inner envelope (:func:`rim_points`), so lugs never pull the rim outwards. The
+refinements beyond the paper (sub-pixel edges, cut-open holes, ...) live in
+:mod:`sinkjax.classic.refine`.
 """
 
 from __future__ import annotations
@@ -19,40 +20,15 @@ import numpy as np
 _BORDER_PX = 1
 # Half-width (in contour steps) of the chord used for the outline's tangent.
 _TANGENT_HALF = 3
-
-
-def wheel_region(mask: np.ndarray, rect: tuple[int, int, int, int]) -> np.ndarray | None:
-    """Dilation, erosion and area filtering: the wheel's connected component (holes not filled).
-
-    ``mask``: (H, W) bool. Returns a (H, W) bool mask, or None when no component reaches into the
-    confidence rectangle. Closing bridges one-pixel cracks (noise, anti-aliasing); the component
-    with the most pixels in the rectangle is the wheel. Its holes (lightening holes, hub, specular
-    highlights) are no part of its outline; :func:`fill_holes` fills them.
-    """
-    k3 = np.ones((3, 3), np.uint8)
-    closed = cv2.erode(cv2.dilate(mask.astype(np.uint8), k3), k3)
-    # An opening after the closing drops one-pixel spurs and soil specks touching the wheel.
-    opened = cv2.dilate(cv2.erode(closed, k3), k3)
-    n, labels = cv2.connectedComponents(opened, connectivity=8)
-    if n <= 1:
-        return None
-    x, y, w, h = rect
-    counts = np.bincount(labels[y : y + h, x : x + w].ravel(), minlength=n)
-    counts[0] = 0
-    best = int(np.argmax(counts))
-    if counts[best] == 0:
-        return None
-    return labels == best
-
-
-def fill_holes(region: np.ndarray) -> np.ndarray:
-    """``region`` (H, W) bool with its enclosed holes filled (inside its external contour)."""
-    contours, _ = cv2.findContours(
-        region.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
-    )
-    out = np.zeros(region.shape, np.uint8)
-    cv2.drawContours(out, contours, -1, 1, thickness=cv2.FILLED)
-    return out.astype(bool) | region
+# Most channels one OpenCV filter call takes (CV_CN_MAX is 128 in OpenCV 5, 512 before).
+_CV_MAX_CHANNELS = 128
+# Rim points: residual |p - O| - r within this band (px) and normal within ~37 degrees of radial.
+# The outer side is tight so that lug tips only a few pixels high stay out; the inner side admits
+# the outline's pixel staircase and noise.
+RIM_BAND_PX = (-1.5, 1.0)
+_MIN_RADIAL = 0.8
+# Fewer rim points than this cannot pin a circle (or a scatter) down.
+MIN_RIM_POINTS = 10
 
 
 def wheel_outline(region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +70,12 @@ def off_border(pts: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     )
 
 
-def hough_rim(
+def hough_bin_px(height: int, width: int) -> float:
+    """Centre bin size (px) of :func:`hough_rim_np`'s accumulator: ~1/120 of the image, >= 2."""
+    return max(2.0, min(height, width) / 120.0)
+
+
+def hough_rim_np(
     pts: np.ndarray,
     normals: np.ndarray,
     image_shape: tuple[int, int],
@@ -104,13 +85,13 @@ def hough_rim(
 
     ``pts``, ``normals``: (n, 2) image px and inward unit normals. Each point votes, for every
     candidate radius, for the centre one radius along its normal; the accumulator is binned
-    coarsely (centre bins ~1/120 of the image, radius bins half that) and box-smoothed. Lugs make a
+    coarsely (centre bins :func:`hough_bin_px`, radius bins half that) and box-smoothed. Lugs make a
     second, concentric peak at a larger radius (their tips); among concentric strong peaks the
     innermost is the rim. Centres are searched inside the image, radii in ``r_range_px``.
     Returns (cx, cy, r, smoothed votes) in image px, or None when there are no votes.
     """
     height, width = image_shape
-    bc = max(2.0, min(height, width) / 120.0)
+    bc = hough_bin_px(height, width)
     br = bc / 2.0
     r_lo, r_hi = r_range_px
     nr = max(1, math.ceil((r_hi - r_lo) / br))
@@ -130,8 +111,13 @@ def hough_rim(
     acc_yxr = np.bincount(flat, minlength=ny * nx * nr).reshape(ny, nx, nr).astype(np.float32)
     # Normals from a pixel staircase are good to a few degrees, which at r ~ 200 px spreads a
     # circle's votes over neighbouring bins: sum 3x3x3 neighbourhoods before taking the peak.
-    sm_yx = cv2.boxFilter(acc_yxr, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    sm_yx = np.asarray(sm_yx, np.float32).reshape(ny, nx, nr)  # OpenCV drops a last axis of 1
+    # The filter works channel by channel, and OpenCV takes at most _CV_MAX_CHANNELS at a time.
+    sm_yx = np.empty_like(acc_yxr)
+    for j in range(0, nr, _CV_MAX_CHANNELS):
+        part = np.ascontiguousarray(acc_yxr[:, :, j : j + _CV_MAX_CHANNELS])
+        box = cv2.boxFilter(part, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        # OpenCV drops a last axis of 1.
+        sm_yx[:, :, j : j + _CV_MAX_CHANNELS] = np.asarray(box, np.float32).reshape(ny, nx, -1)
     sm_yxr = sm_yx.copy()
     sm_yxr[:, :, 1:] += sm_yx[:, :, :-1]
     sm_yxr[:, :, :-1] += sm_yx[:, :, 1:]
@@ -194,37 +180,54 @@ def refine_rim(
     outer side keeps lug tips out even when they are only a few pixels high. Returns
     (cx, cy, r, number of inliers) in image px.
     """
-    bands = [(-band0_px, band0_px), (-3.0, 2.0), (-2.0, 1.5), (-1.5, 1.0), (-1.5, 1.0)]
+    bands = [(-band0_px, band0_px), (-3.0, 2.0), (-2.0, 1.5), RIM_BAND_PX, RIM_BAND_PX]
     n_in = 0
-    for lo, hi in bands:
-        d = pts - (cx, cy)
-        rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-        radial = -np.sum(normals * d, axis=1) / rho  # inward normal . (O - p)/|O - p|
-        e = rho - r
-        sel = (e >= lo) & (e <= hi) & (radial > 0.8)
+    for band in bands:
+        sel, _ = rim_points(pts, normals, cx, cy, r, band)
         n_in = int(np.count_nonzero(sel))
-        if n_in < 10:
+        if n_in < MIN_RIM_POINTS:
             break
         cx, cy, r = fit_circle(pts[sel], cx, cy, r)
     return cx, cy, r, n_in
 
 
+def rim_points(
+    pts: np.ndarray,
+    normals: np.ndarray,
+    cx: float,
+    cy: float,
+    r: float,
+    band_px: tuple[float, float] = RIM_BAND_PX,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The outline points that lie on the rim circle (cx, cy, r), and every point's residual.
+
+    ``pts``, ``normals``: (n, 2) image px and inward unit normals. A rim point's normal is nearly
+    radial and its residual |p - O| - r lies in ``band_px``. Returns ((n,) bool, (n,) residual px).
+    """
+    lo, hi = band_px
+    d = pts - (cx, cy)
+    rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+    radial = -np.sum(normals * d, axis=1) / rho  # inward normal . (O - p)/|O - p|
+    e = rho - r
+    return (e >= lo) & (e <= hi) & (radial > _MIN_RADIAL), e
+
+
+def mad_px(residual_px: np.ndarray) -> float:
+    """Robust scatter (px): the median absolute deviation, scaled to a Gaussian's sigma."""
+    return 1.4826 * float(np.median(np.abs(residual_px - np.median(residual_px))))
+
+
 def rim_scatter_px(pts: np.ndarray, normals: np.ndarray, cx: float, cy: float, r: float) -> float:
     """Robust (MAD) scatter, px, of the rim's outline points about the circle (cx, cy, r).
 
-    Rim points are those whose normal is nearly radial and whose residual lies in [-1.5, +1] px,
-    the inliers of :func:`refine_rim`'s last band. On a pixel outline it is the staircase's
-    quantisation, plus noise; it sets how far inside the rim a point must be to count as soil
-    boundary. 0.5 px when there are too few rim points to tell.
+    Rim points: :func:`rim_points`, the inliers of :func:`refine_rim`'s last band. On a pixel
+    outline it is the staircase's quantisation, plus noise; it sets how far inside the rim a
+    point must be to count as soil boundary. 0.5 px when there are too few rim points to tell.
     """
-    d = pts - (cx, cy)
-    rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-    radial = -np.sum(normals * d, axis=1) / rho
-    e = rho - r
-    sel = (e >= -1.5) & (e <= 1.0) & (radial > 0.8)
-    if np.count_nonzero(sel) < 10:
+    sel, e = rim_points(pts, normals, cx, cy, r)
+    if np.count_nonzero(sel) < MIN_RIM_POINTS:
         return 0.5
-    return 1.4826 * float(np.median(np.abs(e[sel] - np.median(e[sel]))))
+    return mad_px(e[sel])
 
 
 def runs_of(flags: np.ndarray) -> list[np.ndarray]:

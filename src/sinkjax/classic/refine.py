@@ -25,7 +25,8 @@ import math
 import cv2
 import numpy as np
 
-from .outline import fill_holes, fit_circle, off_border, wheel_outline
+from .outline import MIN_RIM_POINTS, fit_circle, mad_px, off_border, rim_points, wheel_outline
+from .segmentation import fill_holes
 
 
 def fill_cut_holes(
@@ -154,21 +155,17 @@ def _hole_pattern(
 def refit_rim(
     pts: np.ndarray, normals: np.ndarray, cx: float, cy: float, r: float
 ) -> tuple[float, float, float, float]:
-    """Least-squares rim circle through the (sub-pixel) edge points within [-1.5, +1] px of it.
+    """Least-squares rim circle through the (sub-pixel) edge points on it (:func:`rim_points`).
 
     Returns (cx, cy, r, sigma) in px; sigma is the robust (MAD) scatter of the rim points about
     the circle, which sets how far inside the rim a point must be to count as soil boundary.
     """
     sigma = 0.5
     for _ in range(3):
-        d = pts - (cx, cy)
-        rho = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-        radial = -np.sum(normals * d, axis=1) / rho
-        e = rho - r
-        sel = (e >= -1.5) & (e <= 1.0) & (radial > 0.8)
-        if np.count_nonzero(sel) < 10:
+        sel, e = rim_points(pts, normals, cx, cy, r)
+        if np.count_nonzero(sel) < MIN_RIM_POINTS:
             break
-        sigma = 1.4826 * float(np.median(np.abs(e[sel] - np.median(e[sel]))))
+        sigma = mad_px(e[sel])
         cx, cy, r = fit_circle(pts[sel], cx, cy, r)
     return cx, cy, r, sigma
 
