@@ -1,4 +1,4 @@
-"""The paper's sinkage model (Fig. 1, Eqs. 1-3), made exact per conventions §1.
+"""The paper's sinkage model (Fig. 1, Eqs. 1-3), made exact per docs/conventions.md §1.
 
 All functions are pure JAX, jit- and vmap-able, and work in the *wheel frame*: origin at the rim
 centre O, x to the entry side, y DOWN, pixels. :func:`to_wheel_frame` maps image pixels there,

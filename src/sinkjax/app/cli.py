@@ -1,4 +1,4 @@
-"""The ``sinkjax`` command (conventions §3). Thin: parse, validate, call the API, report.
+"""The ``sinkjax`` command (docs/conventions.md §3). Thin: parse, validate, call the API, report.
 
 Subcommands live in :data:`COMMANDS` (name -> :class:`Command`); add one by adding an entry.
 User errors (bad arguments, unusable rig, nothing readable) print one message and exit 2, never a

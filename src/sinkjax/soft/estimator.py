@@ -38,7 +38,7 @@ class SoftEstimate(eqx.Module):
     ``params`` are the fitted model (cx, cy, r px; k, b; end lines, see ``_model``) and
     ``params_std`` their sigmas before the uncertainty model's scaling; ``status`` indexes
     :class:`sinkjax.Status` by its ``code``; the boundary arrays are the outline points and their boundary weights
-    (for overlays). For no contact the measurements are 0 (conventions §1).
+    (for overlays). For no contact the measurements are 0 (docs/conventions.md §1).
     """
 
     sinkage_mm: Float[Array, ""]

@@ -1,4 +1,4 @@
-"""Synthetic side-view wheel-in-soil frames with EXACT ground truth (conventions §1).
+"""Synthetic side-view wheel-in-soil frames with EXACT ground truth (docs/conventions.md §1).
 
 A :class:`Scene` holds every parameter of one frame (``scene``); :func:`true_geometry` computes the
 paper's quantities from the true surface and rim circle (``truth``); :func:`coverage` gives each
