@@ -1,0 +1,207 @@
+"""``sinkjax estimate`` and the options of long runs (frames, resume, overlays, smoothing)."""
+
+from __future__ import annotations
+
+import argparse
+
+from .cli_base import EXIT_OK, UsageError
+from .frames import FrameSelection
+from .pipeline import MethodUnavailable, load_method
+from .resume import ResumeError
+from .run import estimate_to_csv
+from .smoothing import SmoothingOptions
+from .sources import RigOverrides, open_recordings, parse_rect
+
+# --------------------------------------------------------------------------------------------
+# estimate
+
+
+def _add_estimate(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "paths",
+        nargs="+",
+        metavar="PATH",
+        help="image files, directories of images (sorted by name; a rig.toml inside is used), "
+        "or video files (one row per frame)",
+    )
+    p.add_argument(
+        "--rig", metavar="RIG.toml", help="rig file (default: rig.toml in the directory)"
+    )
+    p.add_argument(
+        "--wheel-radius-mm", type=float, metavar="R", help="physical rim radius R in mm (overrides)"
+    )
+    p.add_argument(
+        "--confidence-rect",
+        metavar="X,Y,W,H",
+        help="pixel rectangle that always shows the wheel face (overrides)",
+    )
+    p.add_argument("--travel", choices=("right", "left"), help="direction of travel (overrides)")
+    p.add_argument(
+        "--method",
+        choices=("soft", "classic"),
+        default="soft",
+        help="soft: differentiable estimator with uncertainty (default); classic: the paper's",
+    )
+    p.add_argument(
+        "--out", default="results.csv", metavar="CSV", help="results CSV (default: results.csv)"
+    )
+    p.add_argument("--overlay", metavar="DIR", help="also write one overlay PNG per frame here")
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=8,
+        metavar="N",
+        help="frames measured together (soft method only; default: 8)",
+    )
+    _add_long_run_options(p)
+
+
+def _run_estimate(args: argparse.Namespace) -> int:
+    if args.batch_size < 1:
+        raise UsageError(f"--batch-size must be at least 1, got {args.batch_size}")
+    select, smoothing = _long_run_options(args)
+    rect = parse_rect(args.confidence_rect) if args.confidence_rect is not None else None
+    overrides = RigOverrides(args.wheel_radius_mm, rect, args.travel)
+    inputs = open_recordings(args.paths, rig_path=args.rig, overrides=overrides)
+    try:
+        load_method(args.method)
+    except MethodUnavailable as e:
+        raise UsageError(str(e)) from e
+    try:
+        summary = estimate_to_csv(
+            inputs,
+            args.out,
+            method=args.method,
+            batch_size=args.batch_size,
+            overlay_dir=args.overlay,
+            overlay_video=args.overlay_video,
+            select=select,
+            resume=args.resume,
+            smoothing=smoothing,
+            progress=True,
+        )
+    except (ResumeError, ValueError) as e:
+        raise UsageError(str(e)) from e
+    except OSError as e:
+        raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e
+    if len(summary.recordings) > 1:
+        print("\n".join(["rigs:", *summary.rig_lines()]))
+    print(summary.line())
+    if summary.n_frames == 0:
+        if summary.n_resumed:
+            print(f"nothing left to measure: {args.out} already has every selected frame")
+            return EXIT_OK
+        raise UsageError(
+            f"no frames selected (--start {select.start}, --stop {select.stop}, --stride "
+            f"{select.stride}); the videos are shorter than --start, or there are fewer images"
+        )
+    if summary.n_read == 0:
+        raise UsageError(
+            f"none of the {summary.n_frames} input frame(s) could be read (see the message "
+            f"column of {args.out}); check that the PATHs are intact image or video files"
+        )
+    if summary.only_bad_rect:
+        raise UsageError(
+            "the confidence rectangle lies off every image (see the message column of "
+            f"{args.out}); fix confidence_rect in the rig or pass --confidence-rect X,Y,W,H "
+            "inside the images"
+        )
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------------------
+# long runs: frame selection, resume, overlay video, smoothing (estimate); smooth; plot
+
+
+def _add_smoothing_options(p: argparse.ArgumentParser) -> None:
+    from . import smoothing as S
+
+    g = p.add_argument_group(
+        "smoothing (random walk per quantity, Kalman filter + RTS smoother over the frames)"
+    )
+    options = (
+        (
+            "--process-std-mm",
+            S.PROCESS_STD_MM,
+            "MM",
+            "how far sinkage may drift per frame, one sigma",
+        ),
+        (
+            "--process-std-deg",
+            S.PROCESS_STD_DEG,
+            "DEG",
+            "how far θ1, θ2 may drift per frame, one sigma",
+        ),
+        (
+            "--measurement-std-mm",
+            S.MEASUREMENT_STD_MM,
+            "MM",
+            "sinkage sigma for rows that have none, e.g. the classic method's",
+        ),
+        (
+            "--measurement-std-deg",
+            S.MEASUREMENT_STD_DEG,
+            "DEG",
+            "angle sigma for rows that have none",
+        ),
+    )
+    for flag, default, metavar, text in options:
+        g.add_argument(
+            flag, type=float, default=default, metavar=metavar, help=f"{text} (default: {default})"
+        )
+
+
+def _smoothing_options(args: argparse.Namespace) -> SmoothingOptions:
+    try:
+        return SmoothingOptions(
+            process_std_mm=args.process_std_mm,
+            process_std_deg=args.process_std_deg,
+            measurement_std_mm=args.measurement_std_mm,
+            measurement_std_deg=args.measurement_std_deg,
+        )
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+
+
+def _add_long_run_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "long recordings (frame indices count within each video, and over all image files "
+        "of the run together, in input order)"
+    )
+    g.add_argument("--start", type=int, default=0, metavar="N", help="first frame index (0)")
+    g.add_argument("--stop", type=int, metavar="N", help="stop before this frame index (end)")
+    g.add_argument(
+        "--stride", type=int, default=1, metavar="K", help="measure every K-th frame (1)"
+    )
+    g.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the rows already in --out and measure only the frames it lacks (by image "
+        "name), appending to it; a fresh run if --out does not exist",
+    )
+    g.add_argument(
+        "--overlay-video",
+        metavar="OUT.mp4",
+        help="also write an annotated video (mp4v), one video frame per row",
+    )
+    g.add_argument(
+        "--smooth",
+        action="store_true",
+        help="when the run completes, add smoothed columns (sinkage_smooth_mm, ...) after the "
+        "12 standard ones; see 'sinkjax smooth -h'",
+    )
+    _add_smoothing_options(p)
+
+
+def _long_run_options(
+    args: argparse.Namespace,
+) -> tuple[FrameSelection, SmoothingOptions | None]:
+    try:
+        select = FrameSelection(start=args.start, stop=args.stop, stride=args.stride)
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+    if args.overlay_video is not None and not args.overlay_video.lower().endswith(
+        (".mp4", ".m4v", ".mov")
+    ):
+        raise UsageError(f"--overlay-video must name an .mp4 file, got {args.overlay_video!r}")
+    return select, _smoothing_options(args) if args.smooth else None
