@@ -103,7 +103,7 @@ def _frames(
 def _calibrated_rig(
     setup: C.Setup, labelled: list[C.Frame], rig: Any
 ) -> tuple[Any, dict[str, Any]]:
-    from sinkjax.calibration.calibrate import LabelledFrames, calibrate
+    from sinkjax.calibration import LabelledFrames, calibrate
 
     frames = LabelledFrames(
         images=np.stack([f.image for f in labelled]),

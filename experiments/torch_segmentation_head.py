@@ -306,7 +306,7 @@ def train_head(
 def calibrated_seg(rec: Recording, cfg: Config) -> SegmentationParams | None:
     """Thresholds calibrated on the rig's training frames, if sinkjax.calibration.calibrate exists."""
     try:
-        from sinkjax.calibration.calibrate import LabelledFrames, calibrate
+        from sinkjax.calibration import LabelledFrames, calibrate
     except ImportError:
         return None
     tr = np.flatnonzero(rec.is_train)

@@ -24,7 +24,7 @@ from .app.results import (
     ResultsWriter as ResultsWriter,
 )
 from .app.smoothing import smooth_csv as smooth_csv
-from .calibration.calibrate import (
+from .calibration import (
     LabelError as LabelError,
     calibrate as calibrate,
     read_labels as read_labels,

@@ -385,8 +385,8 @@ COMMANDS: dict[str, Command] = {
     # calibrate lives in _calibration (parse + run); imported when the parser is built.
     "calibrate": Command(
         "tune the segmentation thresholds to a few labelled frames; writes a rig file",
-        lambda p: __import__("sinkjax.calibration.calibrate", fromlist=["_"]).add_cli_arguments(p),
-        lambda a: __import__("sinkjax.calibration.calibrate", fromlist=["_"]).run_cli(a),
+        lambda p: __import__("sinkjax.calibration.cli", fromlist=["_"]).add_cli_arguments(p),
+        lambda a: __import__("sinkjax.calibration.cli", fromlist=["_"]).run_cli(a),
     ),
     "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
     "smooth": Command("add Kalman/RTS-smoothed columns to a results CSV", _add_smooth, _run_smooth),
