@@ -46,7 +46,7 @@ def _one(method: str, width: int, height: int, batch: int, n_frames: int) -> dic
     """Run one configuration in this process; returns its measurements."""
     import numpy as np
 
-    from sinkjax.app.inputs import Frame
+    from sinkjax.app.frames import Frame
     from sinkjax.app.pipeline import iter_estimates
     from sinkjax import synth as S
 

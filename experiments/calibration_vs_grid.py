@@ -31,8 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sinkjax.calibration.augment import augment
-from sinkjax.calibration.calibrate import Errors, LabelledFrames, calibrate, pseudo_huber
+from sinkjax.calibration import Errors, LabelledFrames, augment, calibrate, pseudo_huber
 from sinkjax.rig import Rig, SegmentationParams
 from sinkjax.soft.estimator import estimate_batch
 from sinkjax import synth as S

@@ -11,7 +11,7 @@ shadow at factor 0.6) with ONE factor changed:
 - dust: the lower wheel face blended towards the soil colour (fraction up to 0.9).
 
 Test frames: flat terrain with slip bulldozing, sinkage 6-30 mm. ``soft-calibrated``: the soft
-method with the rig from ``sinkjax.calibration.calibrate.calibrate`` on 6 OTHER frames of the same
+method with the rig from ``sinkjax.calibrate`` on 6 OTHER frames of the same
 condition (labelled with their true z0, θ1, θ2), scored on the same test frames.
 
     python experiments/exp_lighting.py [--quick] [--out-dir DIR] [--cache-dir DIR]
@@ -103,7 +103,7 @@ def _frames(
 def _calibrated_rig(
     setup: C.Setup, labelled: list[C.Frame], rig: Any
 ) -> tuple[Any, dict[str, Any]]:
-    from sinkjax.calibration.calibrate import LabelledFrames, calibrate
+    from sinkjax.calibration import LabelledFrames, calibrate
 
     frames = LabelledFrames(
         images=np.stack([f.image for f in labelled]),

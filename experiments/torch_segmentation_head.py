@@ -3,7 +3,7 @@
 Question: under hard lighting (presets "shading", "dust", "cast"), can a small conv net that
 corrects the HSI mask, trained end-to-end through :mod:`sinkjax.torch`'s JAX bridge from
 nothing but (z0, theta1, theta2) labels, beat the default HSI thresholds, and the thresholds
-calibrated on the same labels (:mod:`sinkjax.calibration.calibrate`)?
+calibrated on the same labels (:func:`sinkjax.calibrate`)?
 
 Set-up (seeded): one synthetic camera set-up (rig) per preset and per recording, each with
 ``train`` labelled frames and ``test`` held-out frames of the same rig (different terrain, sinkage,
@@ -304,9 +304,9 @@ def train_head(
 
 
 def calibrated_seg(rec: Recording, cfg: Config) -> SegmentationParams | None:
-    """Thresholds calibrated on the rig's training frames, if sinkjax.calibration.calibrate exists."""
+    """Thresholds calibrated on the rig's training frames, if sinkjax.calibrate exists."""
     try:
-        from sinkjax.calibration.calibrate import LabelledFrames, calibrate
+        from sinkjax.calibration import LabelledFrames, calibrate
     except ImportError:
         return None
     tr = np.flatnonzero(rec.is_train)

@@ -21,8 +21,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import sinkjax.calibration as C
 from sinkjax.app.cli import main
-from sinkjax.calibration import augment as A, calibrate as C
+from sinkjax.calibration import cli as calibration_cli, loss as L
+from sinkjax.calibration.augment import (
+    MIRED_LOG_GAINS_PER_100,
+    brightness_contrast,
+    colour_temperature_gains,
+    gaussian_noise,
+    smooth_field,
+    soft_shadow,
+)
 from sinkjax.rig import Rig, SegmentationParams, load_rig
 
 
@@ -64,7 +73,7 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
     def boom(*args: object, **kwargs: object) -> None:
         raise AssertionError("calibrate() ran although the labels are bad")
 
-    monkeypatch.setattr(C, "calibrate", boom)
+    monkeypatch.setattr(calibration_cli, "calibrate", boom)
 
 
 BAD_LABELS = [
@@ -199,7 +208,16 @@ def test_raw_parameters_round_trip_and_stay_valid() -> None:
         assert d["temperature_hue_deg"] > 0 and d["temperature_sat"] > 0
 
 
-def test_gradient_guard_changes_derivatives_at_zero_weight_only() -> None:
+def naive_residuals(p: jax.Array, ev) -> jax.Array:
+    """The model's residuals with the weights' square roots taken by plain ``jnp.sqrt``."""
+    from sinkjax.soft import model as _model
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_model, "_sqrt_weight", jnp.sqrt)
+        return _model.residuals(p, ev)
+
+
+def test_residuals_have_finite_weight_gradients_at_zero_weight() -> None:
     from sinkjax.soft import model as _model
 
     rng = np.random.default_rng(0)
@@ -219,13 +237,13 @@ def test_gradient_guard_changes_derivatives_at_zero_weight_only() -> None:
     def total(fn, w_line):
         return jnp.sum(fn(p, eqx.tree_at(lambda e: e.w_line, ev, w_line)) ** 3)
 
-    np.testing.assert_array_equal(C._residuals_safe(p, ev), C._RESIDUALS(p, ev))
-    g_safe = jax.grad(lambda wl: total(C._residuals_safe, wl))(ev.w_line)
-    g_raw = jax.grad(lambda wl: total(C._RESIDUALS, wl))(ev.w_line)
+    np.testing.assert_array_equal(_model.residuals(p, ev), naive_residuals(p, ev))
+    g = jax.grad(lambda wl: total(_model.residuals, wl))(ev.w_line)
+    g_naive = jax.grad(lambda wl: total(naive_residuals, wl))(ev.w_line)
     positive = np.asarray(ev.w_line) > 0
-    np.testing.assert_allclose(g_safe[positive], g_raw[positive], rtol=1e-12)
-    assert np.all(np.isfinite(np.asarray(g_safe)))
-    assert np.all(np.asarray(g_safe)[~positive] == 0.0)
+    np.testing.assert_allclose(g[positive], g_naive[positive], rtol=1e-12)
+    assert not np.all(np.isfinite(np.asarray(g_naive)))  # d sqrt(w) = inf at w = 0
+    assert np.all(np.asarray(g)[~positive] == 0.0)
 
 
 def test_pseudo_huber() -> None:
@@ -257,7 +275,7 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
             params=jnp.asarray([4.0, 4.0, 3.0, 0, 0, 0, 0, 0, 0]),
         )
 
-    monkeypatch.setattr(C, "measure", measure)
+    monkeypatch.setattr(L, "measure", measure)
     C.loss_and_grad.clear_cache()
     yield state
     C.loss_and_grad.clear_cache()
@@ -294,7 +312,7 @@ def test_failed_frames_count_as_zeros_and_keep_gradients_finite(
     fake_measure, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     fake_measure.update(status=3, nan=True)
-    monkeypatch.setattr(C, "boundary_contrast", lambda *a, **k: 0.0)  # tested on its own
+    monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)  # tested on its own
     out = fake_loss(fake_frames())
     expected = (2 * C.pseudo_huber(28.0) + C.pseudo_huber(57.0)) / 3
     assert float(out.loss) == pytest.approx(float(expected), rel=1e-12)
@@ -327,7 +345,7 @@ def test_calibrate_converges_on_stand_in_and_is_deterministic(fake_measure) -> N
 
 
 def test_failing_frames_get_a_surrogate_gradient(fake_measure, monkeypatch) -> None:
-    real = C.measure
+    real = L.measure
 
     def picky(image, seg, **kw):  # measures nothing unless P_d(S) > 0.6: flat loss at 0.5
         est = real(image, seg, **kw)
@@ -340,8 +358,8 @@ def test_failing_frames_get_a_surrogate_gradient(fake_measure, monkeypatch) -> N
         return 1.0 - C.from_raw(raw_now[0]).p_d_sat
 
     raw_now = [C.to_raw(SegmentationParams())]
-    monkeypatch.setattr(C, "measure", picky)
-    monkeypatch.setattr(C, "boundary_contrast", contrast)
+    monkeypatch.setattr(L, "measure", picky)
+    monkeypatch.setattr(L, "boundary_contrast", contrast)
     C.loss_and_grad.clear_cache()
     out = fake_loss(fake_frames())
     assert calls and np.all(np.isfinite(np.asarray(out.grad)))
@@ -376,14 +394,14 @@ def test_boundary_contrast_is_zero_for_an_edge_at_the_labelled_line() -> None:
 def test_calibrate_backs_off_when_a_step_lands_where_frames_fail(
     fake_measure, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    real = C.measure
+    real = L.measure
 
     def cliff(image, seg, **kw):  # the optimum P_d(S) = 0.7 lies just before a failure region
         est = real(image, seg, **kw)
         return types.SimpleNamespace(**{**vars(est), "status": jnp.where(seg.p_d_sat < 0.72, 0, 3)})
 
-    monkeypatch.setattr(C, "measure", cliff)
-    monkeypatch.setattr(C, "boundary_contrast", lambda *a, **k: 0.0)
+    monkeypatch.setattr(L, "measure", cliff)
+    monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
     C.loss_and_grad.clear_cache()
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=80, learning_rate=0.5, patience=80)
     jumps = [i for i, x in enumerate(res.losses) if x > C.BACKTRACK * min(res.losses[: i + 1])]
@@ -405,32 +423,32 @@ def test_calibrate_keeps_the_best_step_and_stops_early(fake_measure) -> None:
 
 def test_augment_is_seeded_and_in_range() -> None:
     img = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (40, 56, 3)), jnp.float32)
-    a = A.augment(img, jax.random.key(3))
-    b = A.augment(img, jax.random.key(3))
-    c = A.augment(img, jax.random.key(4))
+    a = C.augment(img, jax.random.key(3))
+    b = C.augment(img, jax.random.key(3))
+    c = C.augment(img, jax.random.key(4))
     assert a.shape == img.shape and a.dtype == img.dtype
     np.testing.assert_array_equal(a, b)
     assert float(jnp.abs(a - c).mean()) > 1e-3
     assert float(a.min()) >= 0.0 and float(a.max()) <= 1.0
     with pytest.raises(ValueError, match=r"shape \(H, W, 3\), got \(40, 56\)"):
-        A.augment(img[..., 0], jax.random.key(0))
+        C.augment(img[..., 0], jax.random.key(0))
 
 
 def test_augment_parts() -> None:
-    warm = A.colour_temperature_gains(jnp.asarray(100.0))
-    np.testing.assert_allclose(warm, np.exp(A.MIRED_LOG_GAINS_PER_100), rtol=1e-6)
+    warm = colour_temperature_gains(jnp.asarray(100.0))
+    np.testing.assert_allclose(warm, np.exp(MIRED_LOG_GAINS_PER_100), rtol=1e-6)
     assert warm[0] > 1.0 == warm[1] > warm[2]  # warmer: redder, less blue
-    np.testing.assert_allclose(A.colour_temperature_gains(jnp.asarray(0.0)), 1.0)
+    np.testing.assert_allclose(colour_temperature_gains(jnp.asarray(0.0)), 1.0)
     img = jnp.linspace(0.1, 0.9, 24 * 3).reshape(4, 6, 3)
-    np.testing.assert_allclose(A.brightness_contrast(img, 1.0, 1.0), img, atol=1e-7)
-    np.testing.assert_allclose(A.brightness_contrast(img, 0.5, 1.0), 0.5 * img, atol=1e-7)
-    field = A.smooth_field(jax.random.key(1), 60, 80)
+    np.testing.assert_allclose(brightness_contrast(img, 1.0, 1.0), img, atol=1e-7)
+    np.testing.assert_allclose(brightness_contrast(img, 0.5, 1.0), 0.5 * img, atol=1e-7)
+    field = smooth_field(jax.random.key(1), 60, 80)
     assert float(field.min()) == 0.0 and float(field.max()) == pytest.approx(1.0)
     # Smooth: neighbouring pixels differ by a few percent of the range at most.
     assert float(jnp.abs(jnp.diff(field, axis=1)).max()) < 0.1
-    shaded = A.soft_shadow(jnp.ones((60, 80, 3)), field, jnp.asarray(0.5))
+    shaded = soft_shadow(jnp.ones((60, 80, 3)), field, jnp.asarray(0.5))
     assert float(shaded.min()) == pytest.approx(0.5) and float(shaded.max()) == 1.0
-    noisy = A.gaussian_noise(jnp.full((60, 80, 3), 0.5), jax.random.key(2), jnp.asarray(0.02))
+    noisy = gaussian_noise(jnp.full((60, 80, 3), 0.5), jax.random.key(2), jnp.asarray(0.02))
     assert float(jnp.std(noisy)) == pytest.approx(0.02, rel=0.05)
 
 
@@ -533,6 +551,58 @@ def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Pat
         checked += 1
         assert g[i] == pytest.approx(fd1, rel=0.03, abs=1e-6), (i, g, fd1)
     assert checked >= 4
+
+
+def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
+    recording: Path, cli_run: tuple[Path, str]
+) -> None:
+    """A real frame's evidence has points of weight 0 in every group, where d sqrt(w) is inf: the
+    implicit gradient of the fit would multiply that by 0 (NaN). The frame's own loss gradient
+    (not the batch's, which drops non-finite frames) must be finite and match central differences.
+    """
+    from sinkjax.geometry import travel_sign
+    from sinkjax.soft.fit import build_evidence
+    from sinkjax.soft.hough import hough_rim
+    from sinkjax.soft.outline import extract_outline, refine_outline
+    from sinkjax.soft.segmentation import wheel_mask
+
+    rig = load_rig(recording / "rig.toml")
+    frames = C.read_labels(recording / "LABELS.csv", rig)
+    image = jnp.asarray(frames.images[0], jnp.float64) / 255.0
+    target = jnp.asarray(frames.targets[0])
+    raw = C.to_raw(rig.segmentation)
+
+    # The removed guard's probe, on this frame's evidence: with plain square roots of the weights
+    # the residuals' derivative with respect to the boundary weights is not finite.
+    mask = wheel_mask(image, C.from_raw(raw), rig.confidence_rect)
+    outline = refine_outline(image, extract_outline(mask))
+    ev = build_evidence(outline, hough_rim(outline, *mask.shape), travel_sign(rig.travel))
+    assert np.any(np.asarray(ev.w_line) == 0) and np.any(np.asarray(ev.w_line) > 0)
+    g_naive = jax.grad(
+        lambda w: jnp.sum(naive_residuals(ev.start, eqx.tree_at(lambda e: e.w_line, ev, w)))
+    )(ev.w_line)
+    assert not np.all(np.isfinite(np.asarray(g_naive)))
+
+    static = dict(
+        rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=float(rig.wheel_radius_mm)
+    )
+    # One compiled function for the gradient and the differences (value and grad: one compile).
+    loss_grad = jax.jit(jax.value_and_grad(lambda r: C.frame_loss(r, image, target, **static)[0]))
+    g = np.asarray(loss_grad(raw)[1])
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
+
+    def central(i: int, h: float) -> float:
+        e = jnp.zeros(6).at[i].set(h)
+        return (float(loss_grad(raw + e)[0]) - float(loss_grad(raw - e)[0])) / (2 * h)
+
+    checked = 0
+    for i in range(6):
+        fd1, fd2 = central(i, 1e-4), central(i, 2e-5)
+        if abs(fd1 - fd2) > 0.01 * abs(fd1) + 1e-7:  # a jump within the step: see above
+            continue
+        checked += 1
+        assert g[i] == pytest.approx(fd1, rel=0.03, abs=1e-6), (i, g, fd1)
+    assert checked >= 3
 
 
 def test_calibrated_rig_round_trips(recording: Path, cli_run: tuple[Path, str]) -> None:

@@ -21,7 +21,7 @@ from .app.sources import (
     RigOverrides as RigOverrides,
     open_recordings as open_recordings,
 )
-from .calibration.calibrate import (
+from .calibration import (
     LabelError as LabelError,
     calibrate as calibrate,
     read_labels as read_labels,

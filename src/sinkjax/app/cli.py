@@ -37,11 +37,11 @@ COMMANDS: dict[str, Command] = {
         "measure sinkage and angles in images or videos", _add_estimate, _run_estimate
     ),
     "synth": Command("write a synthetic recording with ground truth", _add_synth, _run_synth),
-    # calibrate lives in _calibration (parse + run); imported when the parser is built.
+    # calibrate lives in sinkjax.calibration.cli (parse + run), imported when it is used.
     "calibrate": Command(
         "tune the segmentation thresholds to a few labelled frames; writes a rig file",
-        lambda p: __import__("sinkjax.calibration.calibrate", fromlist=["_"]).add_cli_arguments(p),
-        lambda a: __import__("sinkjax.calibration.calibrate", fromlist=["_"]).run_cli(a),
+        lambda p: __import__("sinkjax.calibration.cli", fromlist=["_"]).add_cli_arguments(p),
+        lambda a: __import__("sinkjax.calibration.cli", fromlist=["_"]).run_cli(a),
     ),
     "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
     "smooth": Command("add Kalman/RTS-smoothed columns to a results CSV", _add_smooth, _run_smooth),

@@ -1,0 +1,38 @@
+"""Calibration: tune the segmentation thresholds to a few hand-labelled frames by gradient.
+
+``labels`` reads and checks LABELS.csv -> ``loss`` is the robust error of the soft estimator on
+those frames, differentiable in the thresholds -> ``optimise`` runs Adam on it (back-off, early
+stop) and reports the calibrated rig; ``augment`` relights frames so the thresholds survive a
+moving lamp; ``cli`` is ``sinkjax calibrate``. The public names are re-exported here, flat.
+"""
+
+from .augment import (
+    DEFAULT_CONFIG as DEFAULT_CONFIG,
+    AugmentConfig as AugmentConfig,
+    augment as augment,
+)
+from .labels import (
+    LABEL_COLUMNS as LABEL_COLUMNS,
+    QUANTITIES as QUANTITIES,
+    LabelError as LabelError,
+    LabelledFrames as LabelledFrames,
+    read_labels as read_labels,
+)
+from .loss import (
+    RAW_NAMES as RAW_NAMES,
+    FrameLoss as FrameLoss,
+    LossAndGrad as LossAndGrad,
+    boundary_contrast as boundary_contrast,
+    frame_loss as frame_loss,
+    from_raw as from_raw,
+    labelled_soil_side as labelled_soil_side,
+    loss_and_grad as loss_and_grad,
+    pseudo_huber as pseudo_huber,
+    to_raw as to_raw,
+)
+from .optimise import (
+    BACKTRACK as BACKTRACK,
+    CalibrationResult as CalibrationResult,
+    Errors as Errors,
+    calibrate as calibrate,
+)

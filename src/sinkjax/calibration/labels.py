@@ -1,0 +1,128 @@
+"""Labelled frames for calibration: read and check LABELS.csv (docs/conventions.md §3).
+
+Everything is validated before any other work, so that a bad cell stops ``sinkjax calibrate`` at
+once with the row and column to fix instead of after minutes of compiling.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+from jaxtyping import Float, UInt8
+
+from ..rig import Rig, RigError
+
+LABEL_COLUMNS = ("image", "sinkage_mm", "theta1_deg", "theta2_deg")
+QUANTITIES = LABEL_COLUMNS[1:]
+
+
+class LabelError(RigError):
+    """LABELS.csv is unusable; the message names the row (1 = header), the column and the fix."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LabelledFrames:
+    """Checked labelled frames. ``images`` uint8 (N, H, W, 3); ``targets`` (N, 3) float64 as
+    (sinkage_mm, theta1_deg, theta2_deg), NaN = not measured; ``names`` the ``image`` cells."""
+
+    images: UInt8[np.ndarray, "N H W 3"]
+    targets: Float[np.ndarray, "N 3"]
+    names: tuple[str, ...]
+
+
+def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
+    """Read, validate and load LABELS.csv (conventions §3), all before any other work.
+
+    Image paths are relative to the CSV's folder; an empty cell means "not measured". Raises
+    :class:`LabelError` naming the row and column for: missing columns, an empty, missing or
+    unreadable image, a number that does not parse or is out of range, no measured cell at all,
+    images of different sizes, or a confidence rectangle of ``rig`` that lies off the images.
+    """
+    from ..app.frames import read_image
+
+    p = Path(path)
+    if not p.is_file():
+        raise LabelError(f"labels file {str(p)!r} does not exist")
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise LabelError(f"{p}: cannot read it as UTF-8 text ({e})") from e
+    reader = csv.reader(text.splitlines())
+    header = [h.strip() for h in next(reader, [])]
+    missing = [c for c in LABEL_COLUMNS if c not in header]
+    if missing:
+        raise LabelError(
+            f"{p}: row 1 (header): missing column(s) {', '.join(missing)}; the header must "
+            f"name {','.join(LABEL_COLUMNS)} (got {','.join(header) or 'an empty line'!r})"
+        )
+    col = {name: header.index(name) for name in LABEL_COLUMNS}
+    names, targets, rows = [], [], []
+    for row_no, row in enumerate(reader, start=2):
+        if not any(cell.strip() for cell in row):
+            continue
+        cells = {name: (row[i].strip() if i < len(row) else "") for name, i in col.items()}
+        where = f"{p}: row {row_no}, column"
+        if not cells["image"]:
+            raise LabelError(f"{where} image: empty; write the image file name")
+        if not (p.parent / cells["image"]).is_file():
+            raise LabelError(
+                f"{where} image: {str(p.parent / cells['image'])!r} does not exist "
+                "(image paths are relative to the folder of the labels file)"
+            )
+        targets.append([_parse_cell(cells[q], where, q) for q in QUANTITIES])
+        names.append(cells["image"])
+        rows.append(row_no)
+    if not names:
+        raise LabelError(f"{p}: no labelled rows after the header")
+    t = np.asarray(targets, dtype=np.float64)
+    if not np.isfinite(t).any():
+        raise LabelError(
+            f"{p}: rows {rows[0]}-{rows[-1]}, columns {', '.join(QUANTITIES)}: every cell is "
+            "empty; measure at least one quantity in one frame"
+        )
+    images: list[np.ndarray] = []
+    for row_no, name in zip(rows, names, strict=True):
+        try:
+            image = read_image(p.parent / name)
+        except (OSError, ValueError) as e:
+            reason = getattr(e, "strerror", None) or str(e)
+            raise LabelError(
+                f"{p}: row {row_no}, column image: cannot read {name!r}: {reason}"
+            ) from e
+        if images and image.shape != images[0].shape:
+            raise LabelError(
+                f"{p}: row {row_no}, column image: {name!r} is {image.shape[1]}x{image.shape[0]}"
+                f" px but row {rows[0]} is {images[0].shape[1]}x{images[0].shape[0]} px; "
+                "calibrate one camera set-up (one image size) at a time"
+            )
+        images.append(image)
+    if rig is not None:
+        x, y, w, h = rig.confidence_rect
+        height, width = images[0].shape[:2]
+        if x + w > width or y + h > height:
+            raise LabelError(
+                f"the rig's confidence_rect [{x}, {y}, {w}, {h}] lies off the {width}x{height} "
+                f"images of {p}; fix confidence_rect in the rig file"
+            )
+    return LabelledFrames(np.stack(images), t, tuple(names))
+
+
+def _parse_cell(cell: str, where: str, column: str) -> float:
+    if not cell:
+        return math.nan
+    try:
+        value = float(cell)
+    except ValueError:
+        raise LabelError(
+            f"{where} {column}: {cell!r} is not a number; write it with '.' decimals and no "
+            "unit, or leave the cell empty if it was not measured"
+        ) from None
+    limit = math.inf if column == "sinkage_mm" else 180.0
+    if not 0.0 <= value <= limit:
+        unit = "mm >= 0" if column == "sinkage_mm" else "degrees in [0, 180]"
+        raise LabelError(f"{where} {column}: {cell!r} is out of range ({unit})")
+    return value

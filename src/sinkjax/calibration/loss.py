@@ -1,0 +1,246 @@
+"""Calibration loss: the estimator's error on labelled frames as a function of the thresholds.
+
+The soft estimator is differentiable in the segmentation parameters (through the optimistix fit,
+by implicit differentiation), so instead of trying P_a/P_d by hand, calibration minimises a robust
+loss between the estimated and the measured z0, theta1, theta2 of labelled frames.
+
+Parameters live in an unconstrained *raw* space that keeps them valid by construction:
+``P_d = sigmoid(raw)`` in (0, 1), ``P_a = 1 + softplus(raw)`` > 1, temperatures
+``scale * softplus(raw)`` > 0 (scale 1 degree of hue, 0.01 of saturation, so that one Adam step
+moves every parameter by a comparable amount).
+
+Loss of one labelled cell: pseudo-Huber of the error in units of 1 mm (sinkage) or 1 degree
+(angles); empty cells are masked out; the total is the mean over measured cells. A frame whose
+status is not ``ok`` counts as measuring zeros (what ``no_contact`` reports), which is flat in the
+thresholds; so a frame labelled with contact that does not measure also gets a surrogate term with
+a gradient: how far the soft mask is from having an edge at the labelled soil line inside the rim
+(:func:`boundary_contrast`), plus a term rewarding boundary weight when the fit sees too little.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
+
+from ..geometry import travel_sign
+from ..rig import SegmentationParams
+from ..soft.estimator import MIN_BOUNDARY_POINTS, measure
+from ..soft.segmentation import wheel_mask
+from ..status import Status
+from .augment import DEFAULT_CONFIG, AugmentConfig, augment
+
+LOSS_SCALES = (1.0, 1.0, 1.0)  # 1 mm of sinkage weighs as much as 1 degree of angle
+HUBER_DELTA = 1.0  # pseudo-Huber corner in those units: quadratic below, linear above
+# A frame labelled with contact needs this much boundary weight before the deficit term is 0.
+BOUNDARY_TARGET = 4.0 * MIN_BOUNDARY_POINTS
+# Surrogate for frames that do not measure: strips between STRIP_NEAR and STRIP_FAR rim radii
+# above / below the labelled soil line, weighted like CONTRAST_WEIGHT mm (or deg) of error.
+STRIP_NEAR, STRIP_FAR = 0.03, 0.12
+CONTRAST_WEIGHT = 5.0
+RAW_NAMES = ("p_d_hue", "p_a_hue", "p_d_sat", "p_a_sat", "temperature_hue_deg", "temperature_sat")
+RAW_LIMIT = 12.0
+_TEMPERATURE_UNIT_HUE_DEG = 1.0
+_TEMPERATURE_UNIT_SAT = 0.01
+_OK = Status.OK.code
+
+
+# ----------------------------------------------------------------------------- parameters
+
+
+def _logit(p: float) -> float:
+    p = min(max(p, 1e-6), 1.0 - 1e-6)  # a rig may say P_d = 0 (no lower saturation bound)
+    return math.log(p / (1.0 - p))
+
+
+def _inv_softplus(y: float) -> float:
+    return y + math.log(-math.expm1(-y))
+
+
+def to_raw(seg: SegmentationParams) -> Float[Array, " 6"]:
+    """Unconstrained raw vector (order :data:`RAW_NAMES`) of valid segmentation parameters."""
+    d = seg.as_dict()
+    return jnp.asarray(
+        [
+            _logit(d["p_d_hue"]),
+            _inv_softplus(d["p_a_hue"] - 1.0),
+            _logit(d["p_d_sat"]),
+            _inv_softplus(d["p_a_sat"] - 1.0),
+            _inv_softplus(d["temperature_hue_deg"] / _TEMPERATURE_UNIT_HUE_DEG),
+            _inv_softplus(d["temperature_sat"] / _TEMPERATURE_UNIT_SAT),
+        ]
+    )
+
+
+def from_raw(raw: Float[Array, " 6"]) -> SegmentationParams:
+    """Segmentation parameters of a raw vector: always 0 < P_d < 1 < P_a, temperatures > 0.
+
+    Raw values are clipped to +-:data:`RAW_LIMIT` so that the strict inequalities survive float32
+    rounding (sigmoid(17) is 1.0 in float32) and the rig file stays valid.
+    """
+    raw = jnp.clip(raw, -RAW_LIMIT, RAW_LIMIT)
+    return SegmentationParams(
+        p_d_hue=jax.nn.sigmoid(raw[0]),
+        p_a_hue=1.0 + jax.nn.softplus(raw[1]),
+        p_d_sat=jax.nn.sigmoid(raw[2]),
+        p_a_sat=1.0 + jax.nn.softplus(raw[3]),
+        temperature_hue_deg=_TEMPERATURE_UNIT_HUE_DEG * jax.nn.softplus(raw[4]),
+        temperature_sat=_TEMPERATURE_UNIT_SAT * jax.nn.softplus(raw[5]),
+    )
+
+
+# ----------------------------------------------------------------------------- loss
+
+
+def pseudo_huber(x: Float[Array, "*n"], delta: float = HUBER_DELTA) -> Float[Array, "*n"]:
+    """``delta^2 (sqrt(1 + (x / delta)^2) - 1)``: x^2 / 2 near 0, delta |x| far out."""
+    return delta * delta * (jnp.sqrt(1.0 + (x / delta) ** 2) - 1.0)
+
+
+class FrameLoss(eqx.Module):
+    """One frame as the loss saw it: estimates (sinkage_mm, theta1_deg, theta2_deg), status."""
+
+    values: Float[Array, "*n 3"]
+    status: Int[Array, "*n"]
+    loss: Float[Array, "*n"]
+
+
+def labelled_soil_side(
+    u_px: Float[Array, "H W"],
+    v_px: Float[Array, "H W"],
+    r_px: Float[Array, ""],
+    target: Float[Array, " 3"],
+    wheel_radius_mm: float,
+) -> Float[Array, "H W"]:
+    """Signed distance (px, > 0 on the soil side) to the soil line that the labels describe.
+
+    Wheel frame (O-centred, entry side at +u, v down). With both angles labelled it is the chord
+    A B (A = r (sin theta1, cos theta1), B = r (-sin theta2, cos theta2)); otherwise the flat line
+    at depth r - z0 below O. NaN where the labels do not say (no sinkage and no angles).
+    """
+    t1, t2 = jnp.radians(target[1]), jnp.radians(target[2])
+    angles = jnp.isfinite(t1) & jnp.isfinite(t2) & (t1 + t2 > 0)
+    t1, t2 = jnp.where(angles, t1, 0.5), jnp.where(angles, t2, 0.5)
+    ua, va = r_px * jnp.sin(t1), r_px * jnp.cos(t1)
+    ub, vb = -r_px * jnp.sin(t2), r_px * jnp.cos(t2)
+    k = (va - vb) / (ua - ub)
+    chord = ((v_px - va) - k * (u_px - ua)) / jnp.sqrt(1.0 + k * k)
+    z0_px = target[0] * r_px / wheel_radius_mm
+    flat = v_px - (r_px - z0_px)
+    return jnp.where(angles, chord, flat)
+
+
+def boundary_contrast(
+    mask: Float[Array, "H W"],
+    circle: Float[Array, " 3"],
+    target: Float[Array, " 3"],
+    *,
+    sign: float,
+    wheel_radius_mm: float,
+) -> Float[Array, ""]:
+    """How far the soft mask is from an edge at the labelled soil line, in [0, 2].
+
+    Mean of (1 - mask) over a strip of wheel face just above the line plus the mean of the mask
+    over a strip of soil just below it, both inside the rim ``circle`` (cx, cy, r px). It is the
+    surrogate that gives a frame that does not measure a gradient: the mask itself moves with
+    every threshold, where the fit sees nothing until an edge appears.
+    """
+    height, width = mask.shape
+    cx, cy, r = circle[0], circle[1], circle[2]
+    yy, xx = jnp.mgrid[0:height, 0:width]
+    u, v = sign * (xx - cx), yy - cy
+    side = labelled_soil_side(u, v, r, target, wheel_radius_mm) / r
+    inside = u * u + v * v < (0.93 * r) ** 2
+    above = inside & (side > -STRIP_FAR) & (side < -STRIP_NEAR)
+    below = inside & (side > STRIP_NEAR) & (side < STRIP_FAR)
+    n_above, n_below = jnp.sum(above), jnp.sum(below)
+    wheel_missing = jnp.sum(jnp.where(above, 1.0 - mask, 0.0)) / jnp.maximum(n_above, 1)
+    soil_as_wheel = jnp.sum(jnp.where(below, mask, 0.0)) / jnp.maximum(n_below, 1)
+    return jnp.where(n_above > 0, wheel_missing, 0.0) + jnp.where(n_below > 0, soil_as_wheel, 0.0)
+
+
+def frame_loss(
+    raw: Float[Array, " 6"],
+    image: Float[Array, "H W 3"],
+    target: Float[Array, " 3"],
+    *,
+    rect: tuple[int, int, int, int],
+    travel: str,
+    wheel_radius_mm: float,
+) -> tuple[Float[Array, ""], FrameLoss]:
+    """One frame's loss (sum over its measured cells plus the penalties) and what it saw."""
+    seg = from_raw(raw)
+    est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    values = jnp.stack([est.sinkage_mm, jnp.degrees(est.theta1_rad), jnp.degrees(est.theta2_rad)])
+    ok = est.status == _OK
+    # Not ok: counts as measuring zeros, so a failed fit's values never reach the loss.
+    used = jnp.where(ok & jnp.isfinite(values), values, 0.0)
+    measured = jnp.isfinite(target)
+    err = (used - jnp.where(measured, target, 0.0)) / jnp.asarray(LOSS_SCALES, used.dtype)
+    loss = jnp.sum(jnp.where(measured, pseudo_huber(err), 0.0))
+    contact = measured[0] & (jnp.where(measured[0], target[0], 0.0) > 0)
+    deficit = jax.nn.relu(BOUNDARY_TARGET - jnp.sum(est.boundary_weight)) / BOUNDARY_TARGET
+    loss = loss + jnp.where(contact, pseudo_huber(deficit), 0.0)
+    # A labelled contact frame that does not measure: pull the mask towards an edge at the
+    # labelled soil line (the rim circle is found even when the boundary is not).
+    circle = jax.lax.stop_gradient(est.params[:3])
+    usable = contact & ~ok & jnp.all(jnp.isfinite(circle)) & (circle[2] > 1.0)
+    safe_circle = jnp.where(usable, circle, jnp.asarray([0.0, 0.0, 2.0], circle.dtype))
+    contrast = boundary_contrast(
+        wheel_mask(image, seg, rect),
+        safe_circle,
+        target,
+        sign=travel_sign(travel),
+        wheel_radius_mm=wheel_radius_mm,
+    )
+    loss = loss + jnp.where(usable, CONTRAST_WEIGHT * contrast, 0.0)
+    return loss, FrameLoss(values=values, status=est.status, loss=loss)
+
+
+class LossAndGrad(eqx.Module):
+    """Mean loss over measured cells, its gradient w.r.t. the raw parameters, each frame."""
+
+    loss: Float[Array, ""]
+    grad: Float[Array, " 6"]
+    frames: FrameLoss
+
+
+@functools.partial(
+    jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "use_augment", "config")
+)
+def loss_and_grad(
+    raw: Float[Array, " 6"],
+    images_u8: UInt8[Array, "N H W 3"],
+    targets: Float[Array, "N 3"],
+    key: PRNGKeyArray,
+    *,
+    rect: tuple[int, int, int, int],
+    travel: str,
+    wheel_radius_mm: float,
+    use_augment: bool = False,
+    config: AugmentConfig = DEFAULT_CONFIG,
+) -> LossAndGrad:
+    """The calibration loss of a stack of labelled frames and its gradient (vmap of grad).
+
+    Taking the gradient frame by frame lets a frame whose fit produced non-finite values (and
+    so a NaN implicit gradient) drop out of the gradient; its constant penalty still counts in
+    the loss. With ``use_augment`` each frame first gets a random lighting change from ``key``.
+    """
+    dt = jnp.result_type(float)
+    images = images_u8.astype(dt) / 255.0
+    if use_augment:
+        keys = jax.random.split(key, images.shape[0])
+        images = jax.vmap(lambda im, k: augment(im, k, config))(images, keys)
+    targets = targets.astype(dt)
+    n_cells = jnp.maximum(jnp.sum(jnp.isfinite(targets)), 1).astype(dt)
+    one = functools.partial(frame_loss, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    (losses, frames), grads = jax.vmap(jax.value_and_grad(one, has_aux=True), in_axes=(None, 0, 0))(
+        raw, images, targets
+    )
+    finite = jnp.all(jnp.isfinite(grads), axis=1, keepdims=True)
+    grad = jnp.sum(jnp.where(finite, grads, 0.0), axis=0) / n_cells
+    return LossAndGrad(loss=jnp.sum(losses) / n_cells, grad=grad, frames=frames)
