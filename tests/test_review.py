@@ -25,7 +25,8 @@ pytest.importorskip("uvicorn", reason="needs the review extra: pip install 'sink
 import sinkjax
 from sinkjax.app.results import COLUMNS, FrameResult
 from sinkjax.review import LabelGeometry, LabelStore, label_values, suspicion
-from sinkjax.review.server import Server, bind, create_app
+from sinkjax.review.command import Server, bind
+from sinkjax.review.server import create_app
 from sinkjax.review.session import ReviewSession
 
 

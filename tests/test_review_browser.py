@@ -27,7 +27,8 @@ if not CHROMIUM.exists():
 from test_review import true_geometry_px  # noqa: E402
 
 import sinkjax  # noqa: E402
-from sinkjax.review.server import Server, bind, create_app  # noqa: E402
+from sinkjax.review.command import Server, bind  # noqa: E402
+from sinkjax.review.server import create_app  # noqa: E402
 from sinkjax.review.session import ReviewSession  # noqa: E402
 
 ARGS = [

@@ -1,11 +1,16 @@
-"""``sinkjax review`` (conventions §3): arguments and start-up. Imports no server library until
-it runs, so ``sinkjax -h`` works without the ``review`` extra."""
+"""``sinkjax review`` (conventions §3): arguments, the socket on 127.0.0.1 and uvicorn.
+
+Imports no server library until it runs, so ``sinkjax -h`` works without the ``review`` extra;
+then a missing one is a usage error naming the extra to install.
+"""
 
 from __future__ import annotations
 
 import argparse
+import socket
 import threading
 import webbrowser
+from typing import Any
 
 EXTRA_HINT = "pip install 'sinkjax[review]'"
 
@@ -49,7 +54,7 @@ def run_cli(args: argparse.Namespace) -> int:
         raise UsageError(
             f"'sinkjax review' needs the review extra ({e.name} is not installed): {EXTRA_HINT}"
         ) from e
-    from .server import Server, bind, create_app
+    from .server import create_app
     from .session import ReviewSession
 
     if not 0 <= args.port <= 65535:
@@ -78,3 +83,48 @@ def run_cli(args: argparse.Namespace) -> int:
     finally:
         sock.close()
     return EXIT_OK
+
+
+def bind(port: int = 0) -> socket.socket:
+    """A listening socket on 127.0.0.1 (``port`` 0: a free one). Raises OSError if taken."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", port))
+    sock.listen(64)
+    return sock
+
+
+class Server:
+    """uvicorn serving ``app`` on an already bound socket; :meth:`url` says where."""
+
+    def __init__(self, app: Any, sock: socket.socket) -> None:
+        import uvicorn
+
+        self.sock = sock
+        self._server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        host, port = self.sock.getsockname()[:2]
+        return f"http://{host}:{port}/"
+
+    def run(self) -> None:
+        """Serve until interrupted (Ctrl-C)."""
+        self._server.run(sockets=[self.sock])
+
+    def start(self) -> Server:
+        """Serve in a background thread (tests); returns once it accepts connections."""
+        self._thread = threading.Thread(target=self.run, name="sinkjax-review", daemon=True)
+        self._thread.start()
+        while not self._server.started:
+            if not self._thread.is_alive():
+                raise RuntimeError("the review server stopped while starting")
+            self._thread.join(0.02)
+        return self
+
+    def stop(self) -> None:
+        self._server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(10)
+        self.sock.close()

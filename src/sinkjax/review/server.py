@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import socket
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -222,48 +220,3 @@ def _values(data: dict[str, Any], session: ReviewSession, index: int) -> Any:
     except ValueError as e:
         raise HTTPException(400, str(e)) from e
     return label_values(geometry, session.rig_of(index))
-
-
-def bind(port: int = 0) -> socket.socket:
-    """A listening socket on 127.0.0.1 (``port`` 0: a free one). Raises OSError if taken."""
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", port))
-    sock.listen(64)
-    return sock
-
-
-class Server:
-    """uvicorn serving ``app`` on an already bound socket; :meth:`url` says where."""
-
-    def __init__(self, app: Starlette, sock: socket.socket) -> None:
-        import uvicorn
-
-        self.sock = sock
-        self._server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-        self._thread: threading.Thread | None = None
-
-    @property
-    def url(self) -> str:
-        host, port = self.sock.getsockname()[:2]
-        return f"http://{host}:{port}/"
-
-    def run(self) -> None:
-        """Serve until interrupted (Ctrl-C)."""
-        self._server.run(sockets=[self.sock])
-
-    def start(self) -> Server:
-        """Serve in a background thread (tests); returns once it accepts connections."""
-        self._thread = threading.Thread(target=self.run, name="sinkjax-review", daemon=True)
-        self._thread.start()
-        while not self._server.started:
-            if not self._thread.is_alive():
-                raise RuntimeError("the review server stopped while starting")
-            self._thread.join(0.02)
-        return self
-
-    def stop(self) -> None:
-        self._server.should_exit = True
-        if self._thread is not None:
-            self._thread.join(10)
-        self.sock.close()

@@ -20,7 +20,7 @@ from ..status import Status
 
 FAILED_SCORE = 100.0
 NO_CONTACT_SCORE = 1.0
-SIGMA_Z = 3.0  # a sigma this many robust deviations above the recording's median is large
+SIGMA_Z = 3.0  # robust deviations above the median (at least 3.25x the median sigma) is large
 RIM_TOLERANCE_PX = 2.0  # or 1 % of the radius, whichever is larger
 NEIGHBOUR_Z = 4.0  # a value this many robust steps away from its neighbours' median jumps
 NEIGHBOURS = 3  # measured frames on each side (a median of 3+ shrugs off one outlier)
@@ -82,7 +82,7 @@ def _large_sigma(results: Sequence[FrameResult | None], members: list[int], out:
             continue
         sigmas = [float(getattr(results[i], column)) for i in have]
         med, spread = _robust(sigmas)
-        scale = max(spread, 0.5 * med, 1e-9)
+        scale = max(spread, 0.75 * med, 1e-9)
         for i, s in zip(have, sigmas, strict=True):
             z = (s - med) / scale
             if z > SIGMA_Z:
