@@ -33,7 +33,7 @@ from sinkjax.review.session import ReviewSession
 def _client(session: ReviewSession):
     from starlette.testclient import TestClient
 
-    return TestClient(create_app(session))
+    return TestClient(create_app(session), base_url="http://127.0.0.1")
 
 
 def _truth(folder: Path) -> list[dict[str, str]]:
@@ -238,8 +238,12 @@ def test_bad_requests_get_a_4xx_with_a_message(session: ReviewSession) -> None:
         "soil_px": [[200, 330], [400, 330]],
     }
     post = client.post
-    _bad(post("/api/geometry", content=b"{not json"), 400, "not JSON")
-    _bad(post("/api/geometry", content=b"[1, 2]"), 400, "JSON object")
+    as_json = {"Content-Type": "application/json"}
+    _bad(post("/api/geometry", content=b"{not json", headers=as_json), 400, "not JSON")
+    _bad(post("/api/geometry", content=b"[1, 2]", headers=as_json), 400, "JSON object")
+    # a cross-site form or text/plain POST (no CORS preflight) is refused
+    plain = {"Content-Type": "text/plain"}
+    _bad(post("/api/labels", content=json.dumps(good), headers=plain), 415, "application/json")
     _bad(post("/api/labels", json={**good, "frame": 99}), 404, "no frame 99")
     _bad(post("/api/labels", json={**good, "frame": "0"}), 400, "'frame' must be")
     _bad(post("/api/geometry", json={**good, "radius_px": -1}), 400, "radius_px")
@@ -247,11 +251,15 @@ def test_bad_requests_get_a_4xx_with_a_message(session: ReviewSession) -> None:
     _bad(post("/api/geometry", json={**good, "soil_px": [[1, 2]]}), 400, "at least two")
     _bad(post("/api/geometry", json={**good, "soil_px": [[1, 2], [1, 5]]}), 400, "vertical")
     nan = json.dumps(good).replace("150", "NaN").encode()
-    _bad(post("/api/geometry", content=nan), 400, "finite")
+    _bad(post("/api/geometry", content=nan, headers=as_json), 400, "finite")
     _bad(client.get("/api/frames/99/start"), 404, "no frame 99")
     _bad(post("/api/calibrate", json={"steps": 0}), 400, "steps")
     _bad(post("/api/calibrate", json={"steps": 5}), 400, "no labels")
     assert not session.labels.path.exists()  # nothing bad was written
+    # another host name (DNS rebinding) gets nothing
+    from starlette.testclient import TestClient
+
+    assert TestClient(create_app(session)).get("/api/session").status_code == 400
 
 
 def test_only_frame_files_of_the_recordings_are_served(recording: Path, tmp_path: Path) -> None:

@@ -19,6 +19,8 @@ import numpy as np
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
+from starlette.middleware import Middleware
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.requests import Request
 from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
@@ -30,6 +32,7 @@ from .labels import LabelFileError, LabelGeometry, label_values
 from .session import ReviewSession
 
 STATIC = Path(__file__).parent / "static"
+ALLOWED_HOSTS = ("127.0.0.1", "localhost")
 _BROWSER_FORMATS = {".png", ".jpg", ".jpeg", ".bmp"}
 _MAX_BODY_BYTES = 1 << 20
 
@@ -54,6 +57,11 @@ def _json(content: Any, status_code: int = 200) -> JSONResponse:
 
 
 async def _body(request: Request) -> dict[str, Any]:
+    # JSON only: a cross-site form or text/plain POST cannot carry it without a CORS preflight,
+    # which this server never grants, so other web pages cannot write labels through it.
+    kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if kind != "application/json":
+        raise HTTPException(415, f"send JSON (Content-Type: application/json), not {kind!r}")
     raw = await request.body()
     if len(raw) > _MAX_BODY_BYTES:
         raise HTTPException(413, f"request body over {_MAX_BODY_BYTES} bytes")
@@ -209,6 +217,8 @@ def create_app(session: ReviewSession) -> Starlette:
             Mount("/static", StaticFiles(directory=STATIC), name="static"),
         ],
         exception_handlers={HTTPException: error},
+        # Only the loopback names: a DNS-rebinding page cannot reach the API under its own name.
+        middleware=[Middleware(TrustedHostMiddleware, allowed_hosts=list(ALLOWED_HOSTS))],
     )
     app.state.session, app.state.jobs = session, jobs
     return app

@@ -24,7 +24,7 @@ from urllib.parse import quote
 import numpy as np
 
 from ..app.inputs import InputError, expand_paths, read_image, resolve_rig
-from ..app.results import FrameResult
+from ..app.results import COLUMNS, FrameResult
 from ..geometry import from_wheel_frame
 from ..rig import Rig
 from ..status import Status
@@ -255,17 +255,8 @@ class ReviewSession:
         return self._guesses[index]
 
 
-_NUMERIC = (
-    "sinkage_mm",
-    "sinkage_std_mm",
-    "theta1_deg",
-    "theta1_std_deg",
-    "theta2_deg",
-    "theta2_std_deg",
-    "center_x_px",
-    "center_y_px",
-    "radius_px",
-)
+# The numeric columns of a results row (conventions §4).
+_NUMERIC = tuple(c for c in COLUMNS if c not in ("image", "status", "message"))
 
 
 def _on_rim(theta_deg: float, side: float, centre, r: float, travel: str) -> list[float]:
