@@ -120,7 +120,7 @@ def label_values(geometry: LabelGeometry, rig: Rig) -> LabelValues:
         b_end_px=np.array([float(b_u), float(b_v)]),
     )
     z0_px = float(g.sinkage_px)
-    line = _line_chord(float(g.k), float(g.b_px), r, (cx, cy), rig.travel)
+    line = rim_chord(float(g.k), float(g.b_px), r, (cx, cy), rig.travel)
     if not z0_px > 0:
         return LabelValues(0.0, 0.0, 0.0, 0.0, False, line)
     return LabelValues(
@@ -133,7 +133,7 @@ def label_values(geometry: LabelGeometry, rig: Rig) -> LabelValues:
     )
 
 
-def _line_chord(
+def rim_chord(
     k: float, b: float, r: float, centre: tuple[float, float], travel: str
 ) -> tuple[tuple[float, float], tuple[float, float]]:
     # v = k u + b meets u^2 + v^2 = r^2 where (1 + k^2) u^2 + 2 k b u + b^2 - r^2 = 0.

@@ -28,7 +28,7 @@ from ..app.results import COLUMNS, FrameResult
 from ..geometry import from_wheel_frame
 from ..rig import Rig
 from ..status import Status
-from .labels import LabelStore, _line_chord
+from .labels import LabelStore, rim_chord
 from .suspicion import suspicion
 
 LABELS_FILENAME = "LABELS.csv"
@@ -278,7 +278,7 @@ def _around(centre, r: float, rig: Rig, source: str, t1=None, t2=None, z0_px=Non
     offset = vb - k * ub
     if z0_px is not None:
         offset = (r - z0_px) * math.sqrt(k * k + 1.0)
-    soil = [list(p) for p in _line_chord(k, offset, r, tuple(centre), rig.travel)]
+    soil = [list(p) for p in rim_chord(k, offset, r, tuple(centre), rig.travel)]
     return {
         "centre_px": [float(centre[0]), float(centre[1])],
         "radius_px": float(r),
