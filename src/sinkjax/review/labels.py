@@ -136,6 +136,8 @@ def label_values(geometry: LabelGeometry, rig: Rig) -> LabelValues:
 def rim_chord(
     k: float, b: float, r: float, centre: tuple[float, float], travel: str
 ) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Image-px ends of the wheel-frame line v = k u + b inside the rim circle of radius ``r``
+    (where it misses the rim: its stretch under the circle, u from -r to r)."""
     # v = k u + b meets u^2 + v^2 = r^2 where (1 + k^2) u^2 + 2 k b u + b^2 - r^2 = 0.
     qa, qb, qc = 1.0 + k * k, 2.0 * k * b, b * b - r * r
     disc = qb * qb - 4.0 * qa * qc
