@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
 export PIP_CONSTRAINT := $(CURDIR)/constraints.txt
 
-.PHONY: demo test lint typecheck pytest bench experiments experiments-quick clean setup setup-dev
+.PHONY: demo test lint typecheck pytest bench experiments experiments-quick clean setup setup-dev chromium
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -16,8 +16,16 @@ $(VENV)/.core: $(PY) pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.dev: $(VENV)/.core
-	$(PIP) -e ".[torch,dev]"
+	$(PIP) -e ".[torch,dev,review]"
 	touch $@
+
+# The review page's browser tests drive Debian's chromium. Installed here when missing and we
+# are root with apt; otherwise (or if apt fails) those tests skip, saying how to install it.
+chromium:
+	@if [ ! -x /usr/bin/chromium ] && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+			>/dev/null) || echo "warning: could not install chromium; browser tests will skip"; \
+	fi
 
 setup: $(VENV)/.core
 setup-dev: $(VENV)/.dev
@@ -32,7 +40,7 @@ lint: $(VENV)/.dev
 typecheck: $(VENV)/.dev
 	$(VENV)/bin/mypy
 
-pytest: $(VENV)/.dev
+pytest: $(VENV)/.dev chromium
 	$(VENV)/bin/pytest -n 2 -q
 
 test: lint typecheck pytest

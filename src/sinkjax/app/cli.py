@@ -46,6 +46,11 @@ COMMANDS: dict[str, Command] = {
     "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
     "smooth": Command("add Kalman/RTS-smoothed columns to a results CSV", _add_smooth, _run_smooth),
     "plot": Command("plot sinkage and angles over the frames", _add_plot, _run_plot),
+    "review": Command(
+        "review a run and label frames for calibration in a local web page",
+        lambda p: __import__("sinkjax.review.command", fromlist=["_"]).add_cli_arguments(p),
+        lambda a: __import__("sinkjax.review.command", fromlist=["_"]).run_cli(a),
+    ),
 }
 
 
