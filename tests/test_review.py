@@ -354,7 +354,7 @@ def test_calibrate_button_calibrates_saves_the_rig_and_remeasures(
 ) -> None:
     """The job's wiring around ``sinkjax.calibrate`` (itself tested in test_calibration): the
     saved labels go in, progress comes out, the new rig is written and the frames re-measured."""
-    from sinkjax.calibration.calibrate import CalibrationResult, Errors
+    from sinkjax.calibration import CalibrationResult, Errors
 
     tuned = sinkjax.SegmentationParams(p_d_hue=0.8, p_a_hue=1.2)
     seen: dict[str, object] = {}

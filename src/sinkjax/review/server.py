@@ -26,7 +26,7 @@ from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
-from ..app.inputs import read_image
+from ..app.frames import read_image
 from .jobs import JobBusy, Jobs
 from .labels import LabelFileError, LabelGeometry, label_values
 from .session import ReviewSession

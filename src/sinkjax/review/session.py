@@ -23,9 +23,11 @@ from urllib.parse import quote
 
 import numpy as np
 
-from ..app.inputs import InputError, expand_paths, read_image, resolve_rig
-from ..app.results import COLUMNS, FrameResult
+from ..app.frames import read_image
+from ..app.results import COLUMNS
+from ..app.sources import InputError, assign_rigs, expand_paths
 from ..geometry import from_wheel_frame
+from ..result import FrameResult
 from ..rig import Rig
 from ..status import Status
 from .labels import LabelStore, rim_chord
@@ -96,13 +98,13 @@ class ReviewSession:
         inputs = expand_paths([arg])
         if any(s.kind != "image" for s in inputs.sources):
             raise InputError(f"{arg!r}: review shows image files; extract a video's frames first")
-        own = inputs.directory_rigs[0] if inputs.directory_rigs else None
-        nearby = inputs.nearby_rigs[0] if inputs.nearby_rigs else None
         root = Path(arg) if Path(arg).is_dir() else Path(arg).parent
         root = root.absolute()
         index = next((i for i, r in enumerate(self.recordings) if r.root == root), None)
         if index is None:
-            rig = resolve_rig(inputs, rig_path=None if own else (nearby or rig_path))
+            # The rig of the recording (its folder's rig.toml, else --rig): conventions §2.
+            rig = assign_rigs(inputs, rig_path=rig_path).recordings[0].rig
+            assert rig is not None
             self.recordings.append(Recording(root, rig))
             index = len(self.recordings) - 1
         for source in inputs.sources:
@@ -161,12 +163,12 @@ class ReviewSession:
                 i = by_file.get(Path(image).resolve())
             if i is None and len(stems.get(Path(image).name, [])) == 1:
                 i = stems[Path(image).name][0]
-            if i is None or not row.get("status"):
+            if i is None or row.get("status") not in set(Status):
                 continue
             values = {c: _number(row.get(c)) for c in _NUMERIC}
             self.results[i] = FrameResult(
                 image=self.frames[i].name,
-                status=row["status"],
+                status=Status(row["status"]),
                 message=row.get("message") or "",
                 **values,  # type: ignore[arg-type]
             )

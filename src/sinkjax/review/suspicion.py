@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..app.results import FrameResult
+from ..result import FrameResult
 from ..status import Status
 
 FAILED_SCORE = 100.0
