@@ -33,8 +33,7 @@ N_DISTINCT = 6
 
 def make_video(path: Path, n_frames: int, width: int, height: int, fps: float = 10.0) -> Path:
     """The synthetic video and its ``rig.toml`` next to it; reused if already there."""
-    from sinkjax.rig import save_rig
-    from sinkjax import synth as S
+    from sinkjax import save_rig, synth as S
 
     meta = path.with_suffix(".json")
     wanted = {"frames": n_frames, "width": width, "height": height, "distinct": N_DISTINCT}
