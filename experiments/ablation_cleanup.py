@@ -22,7 +22,26 @@ import numpy as np
 from benchmark import RESULTS, make_frames, metrics
 from tqdm import tqdm
 
-from sinkjax.soft.estimator import _row, measure
+import sinkjax as sj
+
+
+def _result(est: sj.SoftEstimate, name: str) -> sj.FrameResult:
+    """The numbers of one estimate as a results row (no overlay): what ``metrics`` reads."""
+    status = sj.Status.from_code(int(est.status))
+    if status == sj.Status.OK and not np.all(np.isfinite(est.params)):
+        status = sj.Status.FIT_FAILED  # as estimate_batch reports a non-finite fit
+    if not status.measured:
+        return sj.FrameResult(image=name, status=status)
+    return sj.FrameResult(
+        image=name,
+        status=status,
+        sinkage_mm=float(est.sinkage_mm),
+        sinkage_std_mm=float(est.sinkage_std_mm),
+        theta1_deg=float(np.degrees(est.theta1_rad)),
+        theta1_std_deg=float(np.degrees(est.theta1_std_rad)),
+        theta2_deg=float(np.degrees(est.theta2_rad)),
+        theta2_std_deg=float(np.degrees(est.theta2_std_rad)),
+    )
 
 
 def run(frames: list, open_radius_px: int) -> list:
@@ -34,7 +53,7 @@ def run(frames: list, open_radius_px: int) -> list:
         if key not in cache:
             cache[key] = jax.jit(
                 functools.partial(
-                    measure,
+                    sj.measure,
                     rect=rig.confidence_rect,
                     travel=rig.travel,
                     wheel_radius_mm=rig.wheel_radius_mm,
@@ -42,8 +61,7 @@ def run(frames: list, open_radius_px: int) -> list:
                 )
             )
         est = cache[key](jnp.asarray(f.image, jnp.float32) / 255.0, rig.segmentation)
-        est = jax.tree_util.tree_map(lambda a: np.asarray(a)[None], est)
-        out.append(_row(est, 0, f.name, rig))
+        out.append(_result(jax.tree_util.tree_map(np.asarray, est), f.name))
     return out
 
 

@@ -1,11 +1,11 @@
 """Throughput and peak memory of the classic and soft methods (``make bench``).
 
 For each configuration -- classic at 640x480 and 1280x720, soft at both sizes with batch sizes 1,
-4 and 8 -- a fresh Python process renders a few synthetic frames (``sinkjax.synth.render``, not timed),
+4 and 8 -- a fresh Python process renders a few synthetic frames (``sinkjax.synth``, not timed),
 compiles (soft; timed separately), then measures N frames through the pipeline's batching
 (``iter_estimates``) and reports frames/s and its peak resident memory (``ru_maxrss``: the whole
 process, JAX runtime and compiled code included). One process per configuration, so each peak is
-its own. Writes ``experiments/results/bench.md``.
+its own. Writes ``experiments/results/bench.json`` (the numbers) and, from it, ``bench.md``.
 
     python experiments/bench.py            # all configurations (several minutes on 2 CPU cores)
     python experiments/bench.py --quick    # 640x480 only, soft batch 1 and 8, fewer frames
@@ -46,9 +46,9 @@ def _one(method: str, width: int, height: int, batch: int, n_frames: int) -> dic
     """Run one configuration in this process; returns its measurements."""
     import numpy as np
 
+    from sinkjax import synth as S
     from sinkjax.app.frames import Frame
     from sinkjax.app.pipeline import iter_estimates
-    from sinkjax import synth as S
 
     rng = np.random.default_rng(0)
     scenes = S.recording_scenes(rng, N_DISTINCT, width=width, height=height)
@@ -119,6 +119,50 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def machine_line(data: dict) -> str:
+    """The report's "Machine:" sentence from the saved JSON."""
+    return (
+        f"Machine: {data['machine']}. Run {'--quick' if data['quick'] else '(full)'} in "
+        f"{data['seconds']:.0f} s, {data['date']}."
+    )
+
+
+def report(data: dict) -> str:
+    """The Markdown report from the saved JSON (``bench.json``)."""
+    rows = data["rows"]
+    classic = {r["size"]: r["fps"] for r in rows if r["method"] == "classic"}
+    best_soft: dict[str, dict] = {}
+    for r in rows:
+        if r["method"] == "soft" and r["fps"] > best_soft.get(r["size"], {"fps": 0})["fps"]:
+            best_soft[r["size"]] = r
+    summary = [
+        f"- {size}: soft {s['fps']:.2f} frames/s (batch {s['batch']}) vs classic "
+        f"{classic[size]:.2f} frames/s: soft is {s['fps'] / classic[size]:.1f}x classic"
+        for size, s in best_soft.items()
+        if size in classic
+    ]
+    return "\n".join(
+        [
+            "# Throughput benchmark (`make bench`)",
+            "",
+            GPU_PARAGRAPH,
+            "## CPU numbers",
+            "",
+            f"{machine_line(data)} Frames/s exclude start-up and the soft "
+            "method's compilation (its own column; paid once per image size and batch size). "
+            "Peak RSS is the whole process (one per row). Load average at the end (1/5/15 "
+            f"min): {'/'.join(f'{x:.1f}' for x in data['load_average'])} on "
+            f"{data['cpu_count']} cores; on a shared machine the figures move by up to ~2x "
+            "between runs, so compare the rows of one run.",
+            "",
+            _table(rows),
+            "",
+            *summary,
+            "",
+        ]
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="640x480 only, fewer frames")
@@ -152,44 +196,21 @@ def main(argv: list[str] | None = None) -> int:
             f"compile {row['compile_s']:.1f} s, statuses {row['statuses']}",
             file=sys.stderr,
         )
-    classic = {r["size"]: r["fps"] for r in rows if r["method"] == "classic"}
-    best_soft: dict[str, dict] = {}
-    for r in rows:
-        if r["method"] == "soft" and r["fps"] > best_soft.get(r["size"], {"fps": 0})["fps"]:
-            best_soft[r["size"]] = r
-    summary = [
-        f"- {size}: soft {s['fps']:.2f} frames/s (batch {s['batch']}) vs classic "
-        f"{classic[size]:.2f} frames/s: soft is {s['fps'] / classic[size]:.1f}x classic"
-        for size, s in best_soft.items()
-        if size in classic
-    ]
-    text = "\n".join(
-        [
-            "# Throughput benchmark (`make bench`)",
-            "",
-            GPU_PARAGRAPH,
-            "## CPU numbers",
-            "",
-            f"Machine: {_machine()}. Run {'--quick' if args.quick else '(full)'} in "
-            f"{time.perf_counter() - started:.0f} s, "
-            f"{time.strftime('%Y-%m-%d %H:%M')}. Frames/s exclude start-up and the soft "
-            "method's compilation (its own column; paid once per image size and batch size). "
-            "Peak RSS is the whole process (one per row). Load average at the end (1/5/15 "
-            f"min): {'/'.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} cores; "
-            "on a shared machine the figures move by up to ~2x between runs, so compare the "
-            "rows of one run.",
-            "",
-            _table(rows),
-            "",
-            *summary,
-            "",
-        ]
-    )
+    data = {
+        "quick": args.quick,
+        "seconds": time.perf_counter() - started,
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "machine": _machine(),
+        "load_average": list(os.getloadavg()),
+        "cpu_count": os.cpu_count(),
+        "rows": rows,
+    }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+    text = report(json.loads(out.with_suffix(".json").read_text(encoding="utf-8")))
     out.write_text(text, encoding="utf-8")
-    print(_table(rows))
-    print("\n".join(summary))
+    print(text)
     print(f"-> {out}")
     return 0
 

@@ -26,10 +26,10 @@ import sys
 import time
 from typing import Any
 
-import common as C
 import numpy as np
+from common import paper, records, report, runs, scenery
 
-from sinkjax import synth as S
+from sinkjax import metrics as sm, synth as S
 
 NAME = "exp_lighting"
 N_LABELLED = 6
@@ -80,28 +80,28 @@ def condition(base: S.Scene, factor: str, level: float) -> S.Scene:
 
 
 def _frames(
-    setup: C.Setup, scene: S.Scene, n: int, key: tuple[int, ...], tags: dict[str, Any]
-) -> list[C.Frame]:
+    setup: runs.Setup, scene: S.Scene, n: int, key: tuple[int, ...], tags: dict[str, Any]
+) -> list[records.Frame]:
     rng = setup.rng(*key)
     scenes = []
     for _ in range(n):
         depth = float(rng.uniform(6.0, 30.0))
         slip = float(rng.uniform(0.0, 0.7))
-        sc = C.place(
+        sc = scenery.place(
             scene,
             depth,
             phase_rad=float(rng.uniform(0, 2 * math.pi)),
-            **C.bulldozing(scene, depth, slip, jitter=float(rng.uniform(-1, 1))),
+            **scenery.bulldozing(scene, depth, slip, jitter=float(rng.uniform(-1, 1))),
         )
-        if not C.valid_contact(sc):
+        if not scenery.valid_contact(sc):
             raise RuntimeError(f"{tags}: no clean two-point contact at {depth:.1f} mm")
         scenes.append((sc, tags | {"slip": slip, "sensor": depth}))
     seed = int(np.random.SeedSequence([setup.seed, *key]).generate_state(1)[0])
-    return C.render_frames(scenes, seed, "light_")
+    return records.render_frames(scenes, seed, "light_")
 
 
 def _calibrated_rig(
-    setup: C.Setup, labelled: list[C.Frame], rig: Any
+    setup: runs.Setup, labelled: list[records.Frame], rig: Any
 ) -> tuple[Any, dict[str, Any]]:
     from sinkjax.calibration import LabelledFrames, calibrate
 
@@ -124,9 +124,9 @@ def _calibrated_rig(
     return res.rig, info
 
 
-def run(setup: C.Setup) -> dict[str, Any]:
+def run(setup: runs.Setup) -> dict[str, Any]:
     t0 = time.perf_counter()
-    base = C.paper_scene(setup)
+    base = scenery.paper_scene(setup)
     rig = S.rig_for(base)
     per_cond = setup.n(16, 2)
     # Distinct conditions: the base scene once, then every other level of every factor.
@@ -139,27 +139,34 @@ def run(setup: C.Setup) -> dict[str, Any]:
     for ci, (factor, level) in enumerate(conds):
         scene = base if factor == "base" else condition(base, factor, level)
         label = f"{factor} {level:g}"
-        C.log(f"{NAME}: {label}: calibrating on {N_LABELLED} frames, measuring {per_cond}")
+        runs.log(f"{NAME}: {label}: calibrating on {N_LABELLED} frames, measuring {per_cond}")
         tags = {"factor": factor, "level": level}
         labelled = _frames(setup, scene, N_LABELLED, (4, ci, 0), tags)
         test = _frames(setup, scene, per_cond, (4, ci, 1), tags)
         n_rendered += len(labelled) + len(test)
         cal_rig, cal_info[label] = _calibrated_rig(setup, labelled, rig)
-        rr = C.measure(test, rig, extra_soft={"calibrated": cal_rig})
+        rr = records.measure(test, rig, extra_soft={"calibrated": cal_rig})
         for rec in rr:
             rec["experiment"] = NAME
         recs += rr
-    C.save_records(setup, NAME, recs)
+    info = {"seconds": time.perf_counter() - t0, "frames": n_rendered, "calibration": cal_info}
+    records.save(setup, NAME, recs, info | {"per_condition": per_cond})
+    return write_report(setup)
+
+
+def write_report(setup: runs.Setup) -> dict[str, Any]:
+    """The Markdown report, figure and summary from the saved records (``run``)."""
+    recs, meta = records.load(setup, NAME)
+    cal_info, per_cond, n_rendered = meta["calibration"], meta["per_condition"], meta["frames"]
 
     def cell(factor: str, level: float, m: str, stat: str) -> float:
         rr = [r for r in recs if _matches(r, factor, level, setup)]
         if stat == "rel":
-            return C.median(C.rel_error_pct(r, m, "sinkage") for r in rr)
+            return sm.median(records.rel_errors_pct(rr, m, "sinkage"))
         if stat == "angle":
-            return C.median(
-                0.5 * (C.abs_error(r, m, "theta1") + C.abs_error(r, m, "theta2")) for r in rr
-            )
-        return float(sum(C.failed(r, m) for r in rr))
+            both = records.abs_errors(rr, m, "theta1") + records.abs_errors(rr, m, "theta2")
+            return sm.median(0.5 * both)
+        return float(records.n_failed(rr, m))
 
     rows, curves = [], {}
     summary: dict[str, Any] = {"frames": n_rendered}
@@ -175,32 +182,41 @@ def run(setup: C.Setup) -> dict[str, Any]:
             info = cal_info["base 0" if i == 0 else label]
             rows.append(
                 [factor, f"{lv:g}" + (" (base)" if i == 0 else "")]
-                + [C.fmt(curves[factor][(m, "rel")][i]) for m in METHODS]
-                + [C.fmt(curves[factor][(m, "angle")][i]) for m in METHODS]
+                + [report.fmt(curves[factor][(m, "rel")][i]) for m in METHODS]
+                + [report.fmt(curves[factor][(m, "angle")][i]) for m in METHODS]
                 + ["/".join(f"{curves[factor][(m, 'failed')][i]:.0f}" for m in METHODS)]
                 + [f"{info['loss_before']:.3g} → {info['loss_after']:.3g}"]
             )
-        worst = int(np.nanargmax(curves[factor][("soft", "rel")]))
+        # The level where the soft method does worst: most failed frames, then largest error.
+        soft_key = [
+            (f, -1.0 if math.isnan(e) else e)
+            for f, e in zip(
+                curves[factor][("soft", "failed")], curves[factor][("soft", "rel")], strict=True
+            )
+        ]
+        worst = max(range(len(levels)), key=lambda i: soft_key[i])
         for m in METHODS:
             summary[f"{factor}_worst_{m}_rel_pct"] = curves[factor][(m, "rel")][worst]
-            summary[f"{factor}_max_{m}_rel_pct"] = float(np.nanmax(curves[factor][(m, "rel")]))
+            summary[f"{factor}_worst_{m}_failed"] = curves[factor][(m, "failed")][worst]
+            summary[f"{factor}_max_{m}_rel_pct"] = sm.maximum(curves[factor][(m, "rel")])
+            summary[f"{factor}_max_{m}_failed"] = max(curves[factor][(m, "failed")])
         summary[f"{factor}_worst_level"] = levels[worst]
     for m in METHODS:
-        summary[f"all_{m}_rel_pct"] = C.median(C.rel_error_pct(r, m, "sinkage") for r in recs)
-        summary[f"all_{m}_failed"] = sum(C.failed(r, m) for r in recs)
+        summary[f"all_{m}_rel_pct"] = sm.median(records.rel_errors_pct(recs, m, "sinkage"))
+        summary[f"all_{m}_failed"] = records.n_failed(recs, m)
     summary["test_frames"] = len(recs)
     _figure(setup, curves)
     text = "\n\n".join(
         [
             "# Light and shadow (the paper's future work)",
-            C.generated_line(setup, f"{NAME}.py", time.perf_counter() - t0, n_rendered),
+            report.generated_line(setup, f"{NAME}.py", meta["seconds"], n_rendered),
             "One factor at a time changed from the shared camera set-up (base: one lamp, cast "
             "shadow factor 0.6, gain 1, no cast, no dust). Per condition "
             f"{per_cond} test frames (flat terrain with slip bulldozing, 6-30 mm) and "
             f"{N_LABELLED} other labelled frames that `calibrate` tunes the soft method's "
             f"segmentation on ({setup.n(CAL_STEPS, 2)} Adam steps at most). Medians over the test "
-            "frames; a frame a method does not measure counts as a 100 % / full error.",
-            C.md_table(
+            f"frames; {sm.RULE}.",
+            report.md_table(
                 ["factor", "level"]
                 + [f"rel. z0 err {m} (%)" for m in METHODS]
                 + [f"abs. angle err {m} (°)" for m in METHODS]
@@ -209,26 +225,27 @@ def run(setup: C.Setup) -> dict[str, Any]:
             ),
             "Over all "
             f"{len(recs)} test frames (median relative sinkage error): classic "
-            f"{C.fmt(summary['all_classic_rel_pct'])} %, soft {C.fmt(summary['all_soft_rel_pct'])}"
-            f" %, soft-calibrated {C.fmt(summary['all_calibrated_rel_pct'])} %; failed frames "
+            f"{report.fmt(summary['all_classic_rel_pct'])} %, soft "
+            f"{report.fmt(summary['all_soft_rel_pct'])} %, soft-calibrated "
+            f"{report.fmt(summary['all_calibrated_rel_pct'])} %; failed frames "
             f"{summary['all_classic_failed']} / {summary['all_soft_failed']} / "
             f"{summary['all_calibrated_failed']}.",
             f"![light and shadow]({NAME}.png)",
         ]
     )
-    C.write_md(setup, NAME, text)
+    report.write_md(setup, NAME, text)
     return summary
 
 
-def _matches(rec: dict[str, Any], factor: str, level: float, setup: C.Setup) -> bool:
+def _matches(rec: dict[str, Any], factor: str, level: float, setup: runs.Setup) -> bool:
     first = (FACTORS[factor][2] if setup.quick else FACTORS[factor][1])[0]
     if math.isclose(level, first):
         return rec["factor"] == "base"
     return rec["factor"] == factor and math.isclose(float(rec["level"]), level)
 
 
-def _figure(setup: C.Setup, curves: dict[str, dict[tuple[str, str], list[float]]]) -> None:
-    fig, axes = C.figure(2, len(FACTORS), (16.0, 7.5))
+def _figure(setup: runs.Setup, curves: dict[str, dict[tuple[str, str], list[float]]]) -> None:
+    fig, axes = report.figure(2, len(FACTORS), (16.0, 7.5))
     styles = {"classic": "o-", "soft": "s-", "calibrated": "D--"}
     names = {"classic": "classic (paper's method)", "soft": "soft", "calibrated": "soft-calibrated"}
     for j, (factor, (axis, full, quick)) in enumerate(FACTORS.items()):
@@ -244,24 +261,30 @@ def _figure(setup: C.Setup, curves: dict[str, dict[tuple[str, str], list[float]]
             for m in METHODS:
                 y = np.maximum(np.asarray(curves[factor][(m, stat)]), 1e-2)
                 ax.plot(
-                    levels[order], y[order], styles[m], color=C.METHOD_COLOURS[m], label=names[m]
+                    levels[order],
+                    y[order],
+                    styles[m],
+                    color=report.METHOD_COLOURS[m],
+                    label=names[m],
                 )
-            C.log_axis(ax)
+            report.log_axis(ax)
             ax.set_xlabel(axis, fontsize=8)
             ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, which="both", alpha=0.3)
             if i == 0:
                 ax.set_title(TITLES[factor])
-                ax.axhline(C.PAPER_CLAIM_SINKAGE_PCT, color="k", ls=":", lw=1, label="paper: ~10 %")
+                ax.axhline(
+                    paper.PAPER_CLAIM_SINKAGE_PCT, color="k", ls=":", lw=1, label="paper: ~10 %"
+                )
             if j == 0:
                 ax.legend(fontsize=7)
     fig.suptitle("Error against lighting: shadow, light level, colour cast, dust (z0 6-30 mm)")
-    C.save_figure(setup, fig, NAME)
+    report.save_figure(setup, fig, NAME)
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup, _ = C.parse_args(__doc__.splitlines()[0], argv)
-    C.timed(run, setup, NAME)
+    setup, _ = runs.parse_args(__doc__.splitlines()[0], argv)
+    runs.timed(run, setup, NAME)
     return 0
 
 

@@ -23,8 +23,10 @@ import sys
 import time
 from typing import Any
 
-import common as C
 import numpy as np
+from common import records, report, runs
+
+from sinkjax import metrics as sm
 
 NAME = "exp_uncertainty"
 SOURCES = ("paper_terrain", "paper_precision", "paper_depth", "exp_lighting")
@@ -55,21 +57,29 @@ def usable(recs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for r in recs
         if r.get("soft_status") == "ok"
         and r["true_sinkage"] > 0
-        and all(math.isfinite(float(r[f"soft_{q}_std"])) for q in C.QUANTITIES)
+        and all(math.isfinite(float(r[f"soft_{q}_std"])) for q in records.QUANTITIES)
     ]
 
 
 def errors(recs: list[dict[str, Any]], q: str) -> tuple[np.ndarray, np.ndarray]:
-    err = np.asarray([float(r[f"soft_{q}"]) - float(r[f"true_{q}"]) for r in recs])
-    sd = np.asarray([float(r[f"soft_{q}_std"]) for r in recs])
+    """The soft method's signed errors and reported sigmas of ``q`` per record."""
+    err = records.signed_errors(recs, "soft", q)
+    sd = np.asarray(records.estimates(recs, "soft", f"{q}_std"))
     return err, sd
 
 
-def coverage(err: np.ndarray, sd: np.ndarray, p: float) -> float:
-    return float(np.mean(np.abs(err) <= z_for(p) * sd)) if err.size else math.nan
+def covered(recs: list[dict[str, Any]], q: str, p: float) -> np.ndarray:
+    """1 / 0 per record: the central interval ± z_p σ holds the truth (``sinkjax.metrics``)."""
+    return sm.covered(
+        records.truth(recs, q),
+        records.estimates(recs, "soft", q),
+        records.estimates(recs, "soft", f"{q}_std"),
+        records.statuses(recs, "soft"),
+        k=z_for(p),
+    )
 
 
-def run(setup: C.Setup) -> dict[str, Any]:
+def run(setup: runs.Setup) -> dict[str, Any]:
     t0 = time.perf_counter()
     pooled: dict[str, list[dict[str, Any]]] = {}
     for src in SOURCES:
@@ -80,21 +90,22 @@ def run(setup: C.Setup) -> dict[str, Any]:
                 + (" --quick" if setup.quick else "")
                 + " first (or experiments/run_all.py)"
             )
-        pooled[src] = usable(C.load_records(path))
+        pooled[src] = usable(records.load_records(path))
     recs = [r for rr in pooled.values() for r in rr]
     if not recs:
         raise RuntimeError("no frame measured by the soft method in the pooled records")
 
     rows = []
     summary: dict[str, Any] = {"frames": len(recs)}
-    for q in C.QUANTITIES:
+    for q in records.QUANTITIES:
         err, sd = errors(recs, q)
-        row = [f"{C.LABELS[q]} ({C.UNITS[q]})"]
+        row = [f"{report.LABELS[q]} ({report.UNITS[q]})"]
         for p in TABLE_LEVELS:
-            k = int(np.sum(np.abs(err) <= z_for(p) * sd))
-            lo, hi = wilson(k, err.size)
-            row.append(f"{100 * k / err.size:.1f} [{100 * lo:.0f}-{100 * hi:.0f}]")
-            summary[f"coverage_{q}_{round(100 * p)}"] = 100 * k / err.size
+            hits = covered(recs, q, p)
+            k, n = int(np.nansum(hits)), sm.count(hits)
+            lo, hi = wilson(k, n)
+            row.append(f"{100 * k / n:.1f} [{100 * lo:.0f}-{100 * hi:.0f}]")
+            summary[f"coverage_{q}_{round(100 * p)}"] = 100 * k / n
         rms_z = float(np.sqrt(np.mean((err / sd) ** 2)))
         row.append(f"{rms_z:.2f}")
         row.append(f"{np.median(np.abs(err)):.3g} / {np.median(sd):.3g}")
@@ -105,49 +116,47 @@ def run(setup: C.Setup) -> dict[str, Any]:
         if not rr:
             continue
         cells = [src, str(len(rr))]
-        for q in C.QUANTITIES:
-            err, sd = errors(rr, q)
-            cells.append(f"{100 * coverage(err, sd, 0.95):.1f}")
+        for q in records.QUANTITIES:
+            cells.append(f"{sm.mean(covered(rr, q, 0.95)) * 100:.1f}")
         per_source.append(cells)
     _reliability_figure(setup, recs)
     _sigma_figure(setup, recs)
     text = "\n\n".join(
         [
             "# Honest uncertainty: coverage of the soft method's intervals",
-            C.generated_line(setup, f"{NAME}.py", time.perf_counter() - t0, 0).replace(
+            report.generated_line(setup, f"{NAME}.py", time.perf_counter() - t0, 0).replace(
                 "; 0 rendered frames", f"; pools {len(recs)} soft-measured frames of this run"
             ),
             "Every frame of the other experiments that the soft method measured (status `ok`, "
-            "true contact), default rig. Empirical coverage (%) of the central interval "
-            "± z_p σ at nominal level p, with its 95 % Wilson interval; RMS z = RMS of "
-            "error / σ (1 for a calibrated σ). Sources: "
+            f"true contact), default rig; {sm.RULE_COVERAGE}. Empirical coverage (%) of the "
+            "central interval ± z_p σ at nominal level p, with its 95 % Wilson interval; "
+            "RMS z = RMS of error / σ (1 for a calibrated σ). Sources: "
             + ", ".join(f"`{s}`" for s in SOURCES)
             + ".",
-            C.md_table(
+            report.md_table(
                 ["quantity"]
                 + [f"{100 * p:g} % nominal" for p in TABLE_LEVELS]
                 + ["RMS z", "median abs err / median σ"],
                 rows,
             ),
             "Per experiment, empirical coverage (%) at 95 % nominal:",
-            C.md_table(["experiment", "frames", "z0", "θ1", "θ2"], per_source),
+            report.md_table(["experiment", "frames", "z0", "θ1", "θ2"], per_source),
             f"![reliability diagram]({NAME}_reliability.png)",
             f"![error vs sigma]({NAME}_sigma.png)",
         ]
     )
-    C.write_md(setup, NAME, text)
+    report.write_md(setup, NAME, text)
     return summary
 
 
-def _reliability_figure(setup: C.Setup, recs: list[dict[str, Any]]) -> None:
-    fig, axes = C.figure(1, 1, (5.8, 5.4))
+def _reliability_figure(setup: runs.Setup, recs: list[dict[str, Any]]) -> None:
+    fig, axes = report.figure(1, 1, (5.8, 5.4))
     ax = axes[0, 0]
     levels = np.asarray(CURVE_LEVELS)
     ax.plot([0, 100], [0, 100], "k:", lw=1, label="ideal (empirical = nominal)")
-    for q, colour in zip(C.QUANTITIES, ("#dd8452", "#4c72b0", "#55a868"), strict=True):
-        err, sd = errors(recs, q)
-        emp = [100 * coverage(err, sd, p) for p in levels]
-        ax.plot(100 * levels, emp, "-", color=colour, label=f"{C.LABELS[q]}")
+    for q, colour in zip(records.QUANTITIES, ("#dd8452", "#4c72b0", "#55a868"), strict=True):
+        emp = [100 * sm.mean(covered(recs, q, p)) for p in levels]
+        ax.plot(100 * levels, emp, "-", color=colour, label=f"{report.LABELS[q]}")
     ax.set_xlabel("nominal coverage of ± z σ (%)")
     ax.set_ylabel("empirical coverage (%)")
     ax.set_xlim(0, 100)
@@ -155,12 +164,12 @@ def _reliability_figure(setup: C.Setup, recs: list[dict[str, Any]]) -> None:
     ax.set_title(f"Reliability of the soft method's intervals ({len(recs)} frames)")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
-    C.save_figure(setup, fig, f"{NAME}_reliability")
+    report.save_figure(setup, fig, f"{NAME}_reliability")
 
 
-def _sigma_figure(setup: C.Setup, recs: list[dict[str, Any]]) -> None:
-    fig, axes = C.figure(1, 3, (15.0, 4.6))
-    for ax, q in zip(axes[0], C.QUANTITIES, strict=True):
+def _sigma_figure(setup: runs.Setup, recs: list[dict[str, Any]]) -> None:
+    fig, axes = report.figure(1, 3, (15.0, 4.6))
+    for ax, q in zip(axes[0], records.QUANTITIES, strict=True):
         err, sd = errors(recs, q)
         a = np.maximum(np.abs(err), 1e-4)
         ax.scatter(sd, a, s=8, alpha=0.35, color="#dd8452", label="frames: |error|")
@@ -175,20 +184,20 @@ def _sigma_figure(setup: C.Setup, recs: list[dict[str, Any]]) -> None:
         lim = [float(sd.min()) * 0.8, float(sd.max()) * 1.25]
         ax.plot(lim, lim, "--", color="#4c72b0", label="RMS error = σ (calibrated)")
         ax.plot(lim, [1.96 * v for v in lim], ":", color="#4c72b0", label="1.96 σ")
-        C.log_axis(ax, "x")
-        C.log_axis(ax)
-        ax.set_xlabel(f"reported σ of {C.LABELS[q]} ({C.UNITS[q]})")
-        ax.set_ylabel(f"|error| of {C.LABELS[q]} ({C.UNITS[q]})")
-        ax.set_title(f"{C.LABELS[q]}: error vs reported σ")
+        report.log_axis(ax, "x")
+        report.log_axis(ax)
+        ax.set_xlabel(f"reported σ of {report.LABELS[q]} ({report.UNITS[q]})")
+        ax.set_ylabel(f"|error| of {report.LABELS[q]} ({report.UNITS[q]})")
+        ax.set_title(f"{report.LABELS[q]}: error vs reported σ")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle("Soft method: error against its reported uncertainty")
-    C.save_figure(setup, fig, f"{NAME}_sigma")
+    report.save_figure(setup, fig, f"{NAME}_sigma")
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup, _ = C.parse_args(__doc__.splitlines()[0], argv)
-    C.timed(run, setup, NAME)
+    setup, _ = runs.parse_args(__doc__.splitlines()[0], argv)
+    runs.timed(run, setup, NAME)
     return 0
 
 

@@ -1,6 +1,6 @@
 """A long recording, streamed: 2000 frames of 640x480 video through ``sinkjax estimate``.
 
-Writes a synthetic video (a few frames rendered with ``sinkjax.synth.render``, cycled with small
+Writes a synthetic video (a few frames rendered with ``sinkjax.synth.render()``, cycled with small
 shifts of sensor noise, so it is quick to make), then runs ``sinkjax estimate`` on it in a
 subprocess per method and reports the subprocess's peak memory (must stay under 2 GB: frames are
 streamed, never held), how its memory moved during the run, and frames/s. Rerunnable: the video
@@ -33,8 +33,7 @@ N_DISTINCT = 6
 
 def make_video(path: Path, n_frames: int, width: int, height: int, fps: float = 10.0) -> Path:
     """The synthetic video and its ``rig.toml`` next to it; reused if already there."""
-    from sinkjax.rig import save_rig
-    from sinkjax import synth as S
+    from sinkjax import save_rig, synth as S
 
     meta = path.with_suffix(".json")
     wanted = {"frames": n_frames, "width": width, "height": height, "distinct": N_DISTINCT}

@@ -17,118 +17,123 @@ import sys
 import time
 from typing import Any
 
-import common as C
 import numpy as np
+from common import paper, records, report, runs, scenery
 
-from sinkjax import synth as S
+from sinkjax import metrics as sm, synth as S
 
 NAME = "paper_precision"
 LOADS = (30, 90)
 SHORT = {"sinkage": "REDS", "theta1": "REEA", "theta2": "REDA"}
 
 
-def run(setup: C.Setup) -> dict[str, Any]:
+def run(setup: runs.Setup) -> dict[str, Any]:
     t0 = time.perf_counter()
-    base = C.paper_scene(setup)
+    base = scenery.paper_scene(setup)
     rig = S.rig_for(base)
     per_cell = setup.n(12, 1)
     scenes = []
     for li, load in enumerate(LOADS):
-        for si, slip in enumerate(C.PAPER_SLIPS):
+        for si, slip in enumerate(paper.PAPER_SLIPS):
             rng = setup.rng(2, li, si)
-            depth = C.sinkage_for(load, slip)
+            depth = paper.sinkage_for(load, slip)
             for _ in range(per_cell):
                 j = float(rng.uniform(-1, 1))
-                scene = C.place(
+                scene = scenery.place(
                     base,
                     depth,
                     phase_rad=float(rng.uniform(0, 2 * math.pi)),
-                    **C.bulldozing(base, depth, slip, jitter=j),
+                    **scenery.bulldozing(base, depth, slip, jitter=j),
                 )
-                if not C.valid_contact(scene):
+                if not scenery.valid_contact(scene):
                     raise RuntimeError(f"{load} N slip {slip}: no clean two-point contact")
                 scenes.append((scene, {"load_n": load, "slip": slip, "sensor": depth}))
-    C.log(f"{NAME}: rendering and measuring {len(scenes)} frames")
-    frames = C.render_frames(scenes, setup.seed + 2, "precision_")
-    recs = C.measure(frames, rig)
+    runs.log(f"{NAME}: rendering and measuring {len(scenes)} frames")
+    frames = records.render_frames(scenes, setup.seed + 2, "precision_")
+    recs = records.measure(frames, rig)
     for rec in recs:
         rec["experiment"] = NAME
-    C.save_records(setup, NAME, recs)
+    info = {"seconds": time.perf_counter() - t0, "frames": len(frames), "per_cell": per_cell}
+    records.save(setup, NAME, recs, info)
+    return write_report(setup)
 
+
+def write_report(setup: runs.Setup) -> dict[str, Any]:
+    """The Markdown report, figure and summary from the saved records (``run``)."""
+    recs, meta = records.load(setup, NAME)
+    per_cell = meta["per_cell"]
     cells: dict[tuple[int, float], dict[str, float]] = {}
     sections = []
     for load in LOADS:
         rows = []
-        for si, slip in enumerate(C.PAPER_SLIPS):
+        for si, slip in enumerate(paper.PAPER_SLIPS):
             rr = [r for r in recs if r["load_n"] == load and r["slip"] == slip]
-            cell: dict[str, float] = {"true": C.median(r["true_sinkage"] for r in rr)}
+            cell: dict[str, float] = {"true": sm.median(r["true_sinkage"] for r in rr)}
             row = [
                 f"{slip:.1f}",
-                C.fmt(cell["true"]),
-                C.fmt(C.median(r["true_theta1"] for r in rr), 1),
+                report.fmt(cell["true"]),
+                report.fmt(sm.median(r["true_theta1"] for r in rr), 1),
             ]
-            row.append(C.fmt(C.median(r["true_theta2"] for r in rr), 1))
-            for q in C.QUANTITIES:
-                cell[f"paper_{q}"] = C.PAPER_TABLES[load][q][si]
-                row.append(C.fmt(cell[f"paper_{q}"]))
+            row.append(report.fmt(sm.median(r["true_theta2"] for r in rr), 1))
+            for q in records.QUANTITIES:
+                cell[f"paper_{q}"] = paper.PAPER_TABLES[load][q][si]
+                row.append(report.fmt(cell[f"paper_{q}"]))
                 for m in ("classic", "soft"):
-                    cell[f"{m}_{q}"] = C.median(C.rel_error_pct(r, m, q) for r in rr)
-                    row.append(C.fmt(cell[f"{m}_{q}"]))
-            fails = [sum(C.failed(r, m) for r in rr) for m in ("classic", "soft")]
+                    cell[f"{m}_{q}"] = sm.median(records.rel_errors_pct(rr, m, q))
+                    row.append(report.fmt(cell[f"{m}_{q}"]))
+            fails = [records.n_failed(rr, m) for m in ("classic", "soft")]
             row.append(f"{fails[0]}/{fails[1]}")
             cells[(load, slip)] = cell
             rows.append(row)
         mean_row = ["mean", "", "", ""]
-        for q in C.QUANTITIES:
+        for q in records.QUANTITIES:
             for src in ("paper", "classic", "soft"):
                 mean_row.append(
-                    C.fmt(C.mean(cells[(load, s)][f"{src}_{q}"] for s in C.PAPER_SLIPS))
+                    report.fmt(sm.mean(cells[(load, s)][f"{src}_{q}"] for s in paper.PAPER_SLIPS))
                 )
         mean_row.append("")
         rows.append(mean_row)
         headers = ["slip", "true z0 (mm)", "true θ1 (°)", "true θ2 (°)"]
-        for q in C.QUANTITIES:
+        for q in records.QUANTITIES:
             headers += [f"{SHORT[q]} paper", f"{SHORT[q]} classic", f"{SHORT[q]} soft"]
         headers.append("failed classic/soft")
         table_no = 2 if load == 30 else 3
         sections += [
             f"## {load} N vertical load (paper Table {table_no})",
-            C.md_table(headers, rows),
+            report.md_table(headers, rows),
         ]
 
     overall: dict[str, float] = {}
-    for q in C.QUANTITIES:
-        overall[f"paper_{q}"] = C.mean(c[f"paper_{q}"] for c in cells.values())
+    for q in records.QUANTITIES:
+        overall[f"paper_{q}"] = sm.mean(c[f"paper_{q}"] for c in cells.values())
         for m in ("classic", "soft"):
-            overall[f"{m}_{q}"] = C.mean(c[f"{m}_{q}"] for c in cells.values())
-            overall[f"{m}_{q}_pooled_median"] = C.median(C.rel_error_pct(r, m, q) for r in recs)
-            overall[f"{m}_{q}_bias"] = C.median(
-                C.estimate_value(r, m, q) - float(r[f"true_{q}"]) for r in recs
-            )
+            overall[f"{m}_{q}"] = sm.mean(c[f"{m}_{q}"] for c in cells.values())
+            overall[f"{m}_{q}_pooled_median"] = sm.median(records.rel_errors_pct(recs, m, q))
+            overall[f"{m}_{q}_bias"] = sm.median(records.signed_errors(recs, m, q))
     _figure(setup, cells)
     summary_rows = [
         [LABELS_Q[q]]
-        + [C.fmt(overall[f"{s}_{q}"]) for s in ("paper", "classic", "soft")]
-        + [C.fmt(overall[f"{m}_{q}_pooled_median"]) for m in ("classic", "soft")]
-        for q in C.QUANTITIES
+        + [report.fmt(overall[f"{s}_{q}"]) for s in ("paper", "classic", "soft")]
+        + [report.fmt(overall[f"{m}_{q}_pooled_median"]) for m in ("classic", "soft")]
+        for q in records.QUANTITIES
     ]
     text = "\n\n".join(
         [
             "# Algorithm precision (paper Tables 2 and 3)",
-            C.generated_line(setup, f"{NAME}.py", time.perf_counter() - t0, len(frames)),
+            report.generated_line(setup, f"{NAME}.py", meta["seconds"], meta["frames"]),
             "Flat terrain; the sinkage below the flat level follows Bekker's formula for the "
             "paper's Table 1 soil (times a lug factor "
-            f"{C.LUG_SINKAGE_FACTOR:g}, an assumption) and the slip-sinkage factor (1 + s) / "
+            f"{paper.LUG_SINKAGE_FACTOR:g}, an assumption) and the slip-sinkage factor (1 + s) / "
             "(1 - s/2); slip bulldozes a pile ahead of the wheel and a rut behind it. "
             f"{per_cell} frame(s) per experiment; each cell is the median relative error (%) "
             "over its frames against the exact truth (the paper measured sinkage with a "
-            "displacement sensor and the angles by hand, one run each). A frame a method does "
-            "not measure counts as a 100 % error.",
+            "displacement sensor and the angles by hand, one run each). Errors: "
+            f"{sm.RULE}.",
             *sections,
             "## All 16 experiments",
             "Mean of the 16 per-experiment relative errors (%), as the paper's tables average, "
             "and the median over all frames:",
-            C.md_table(
+            report.md_table(
                 [
                     "quantity",
                     "paper",
@@ -143,8 +148,8 @@ def run(setup: C.Setup) -> dict[str, Any]:
             + "; ".join(
                 f"{m}: "
                 + ", ".join(
-                    f"{C.LABELS[q]} {overall[f'{m}_{q}_bias']:+.2f} {C.UNITS[q]}"
-                    for q in C.QUANTITIES
+                    f"{report.LABELS[q]} {overall[f'{m}_{q}_bias']:+.2f} {report.UNITS[q]}"
+                    for q in records.QUANTITIES
                 )
                 for m in ("classic", "soft")
             )
@@ -153,8 +158,8 @@ def run(setup: C.Setup) -> dict[str, Any]:
             f"![precision]({NAME}.png)",
         ]
     )
-    C.write_md(setup, NAME, text)
-    return {"frames": len(frames)} | overall
+    report.write_md(setup, NAME, text)
+    return {"frames": len(recs)} | overall
 
 
 LABELS_Q = {
@@ -164,35 +169,35 @@ LABELS_Q = {
 }
 
 
-def _figure(setup: C.Setup, cells: dict[tuple[int, float], dict[str, float]]) -> None:
-    fig, axes = C.figure(2, 3, (13.0, 7.0))
-    slips = np.asarray(C.PAPER_SLIPS)
+def _figure(setup: runs.Setup, cells: dict[tuple[int, float], dict[str, float]]) -> None:
+    fig, axes = report.figure(2, 3, (13.0, 7.0))
+    slips = np.asarray(paper.PAPER_SLIPS)
     styles = {
         "paper": ("^--", "paper (Tables 2-3)"),
         "classic": ("o-", "classic (paper's method)"),
         "soft": ("s-", "soft"),
     }
     for i, load in enumerate(LOADS):
-        for j, q in enumerate(C.QUANTITIES):
+        for j, q in enumerate(records.QUANTITIES):
             ax = axes[i, j]
             for src, (style, label) in styles.items():
-                vals = [max(cells[(load, s)][f"{src}_{q}"], 0.01) for s in C.PAPER_SLIPS]
-                ax.plot(slips, vals, style, color=C.METHOD_COLOURS[src], label=label, ms=5)
-            C.log_axis(ax)
+                vals = [max(cells[(load, s)][f"{src}_{q}"], 0.01) for s in paper.PAPER_SLIPS]
+                ax.plot(slips, vals, style, color=report.METHOD_COLOURS[src], label=label, ms=5)
+            report.log_axis(ax)
             ax.set_xlabel("slip ratio")
-            ax.set_ylabel(f"relative error of {C.LABELS[q]} (%)")
-            z = [cells[(load, s)]["true"] for s in C.PAPER_SLIPS]
+            ax.set_ylabel(f"relative error of {report.LABELS[q]} (%)")
+            z = [cells[(load, s)]["true"] for s in paper.PAPER_SLIPS]
             ax.set_title(f"{load} N ({z[0]:.0f}-{z[-1]:.0f} mm): {SHORT[q]}", fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
             if i == 0 and j == 0:
                 ax.legend(fontsize=8)
     fig.suptitle("Relative errors vs slip ratio, flat terrain (paper Tables 2 and 3)")
-    C.save_figure(setup, fig, NAME)
+    report.save_figure(setup, fig, NAME)
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup, _ = C.parse_args(__doc__.splitlines()[0], argv)
-    C.timed(run, setup, NAME)
+    setup, _ = runs.parse_args(__doc__.splitlines()[0], argv)
+    runs.timed(run, setup, NAME)
     return 0
 
 

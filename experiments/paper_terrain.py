@@ -27,10 +27,10 @@ import sys
 import time
 from typing import Any
 
-import common as C
 import numpy as np
+from common import paper, records, report, runs, scenery
 
-from sinkjax import synth as S
+from sinkjax import metrics as sm, synth as S
 
 NAME = "paper_terrain"
 TERRAINS = ("flat", "raised", "hollow", "rough")
@@ -48,21 +48,21 @@ def terrain_scene(
     base: S.Scene, terrain: str, slip: float, rng: np.random.Generator
 ) -> tuple[S.Scene, float]:
     """One frame's scene and its displacement-sensor value (mm below the flat level)."""
-    depth = C.sinkage_for(LOAD_N, slip)
-    mm, r = C.px_per_mm(base), base.radius_px
+    depth = paper.sinkage_for(LOAD_N, slip)
+    mm, r = scenery.px_per_mm(base), base.radius_px
     j = float(rng.uniform(-1, 1))
     phase = float(rng.uniform(0, 2 * math.pi))
     if terrain in ("flat", "rough"):
-        fields = C.bulldozing(base, depth, slip, jitter=j)
+        fields = scenery.bulldozing(base, depth, slip, jitter=j)
     else:
         sign = 1.0 if terrain == "raised" else -1.0
         height = MOUND_MM if terrain == "raised" else min(HOLLOW_MM, 0.5 * depth)
-        fields = C.bulldozing(base, depth, slip, pile=False, jitter=j) | {
+        fields = scenery.bulldozing(base, depth, slip, pile=False, jitter=j) | {
             "bump_height_px": sign * height * mm,
             "bump_dx_px": (0.1 + 0.1 * j) * r,
             "bump_sigma_px": 0.6 * r,
         }
-    scene = C.place(base, depth, terrain=terrain, phase_rad=phase, **fields)
+    scene = scenery.place(base, depth, terrain=terrain, phase_rad=phase, **fields)
     if terrain == "rough":
         amps = [a * mm for a in ROUGH_DIGS_MM]
         rough = tuple(
@@ -74,14 +74,14 @@ def terrain_scene(
         scene = dataclasses.replace(
             scene, rough=rough, soil_level_px=scene.soil_level_px + sum(amps)
         )
-    if not C.valid_contact(scene):
+    if not scenery.valid_contact(scene):
         raise RuntimeError(f"{terrain} slip {slip}: the scene has no clean two-point contact")
     return scene, depth
 
 
-def run(setup: C.Setup) -> dict[str, Any]:
+def run(setup: runs.Setup) -> dict[str, Any]:
     t0 = time.perf_counter()
-    base = C.paper_scene(setup)
+    base = scenery.paper_scene(setup)
     rig = S.rig_for(base)
     per_run = setup.n(10, 1)
     scenes = []
@@ -92,24 +92,30 @@ def run(setup: C.Setup) -> dict[str, Any]:
                 scene, sensor = terrain_scene(base, terrain, slip, rng)
                 tags = {"terrain": terrain, "slip": slip, "load_n": LOAD_N, "sensor": sensor}
                 scenes.append((scene, tags))
-    C.log(f"{NAME}: rendering and measuring {len(scenes)} frames")
-    frames = C.render_frames(scenes, setup.seed + 1, "terrain_")
-    recs = C.measure(frames, rig)
+    runs.log(f"{NAME}: rendering and measuring {len(scenes)} frames")
+    frames = records.render_frames(scenes, setup.seed + 1, "terrain_")
+    recs = records.measure(frames, rig)
     for rec in recs:
         rec["experiment"] = NAME
-    C.save_records(setup, NAME, recs)
+    seconds = time.perf_counter() - t0
+    records.save(setup, NAME, recs, {"seconds": seconds, "frames": len(frames), "per_run": per_run})
+    return write_report(setup)
 
-    rows, checks, runs = [], {"truth": 0, "classic": 0, "soft": 0}, []
+
+def write_report(setup: runs.Setup) -> dict[str, Any]:
+    """The report (Markdown, figure) and the summary, made from the records ``run`` saved."""
+    recs, meta = records.load(setup, NAME)
+    rows, checks, means = [], {"truth": 0, "classic": 0, "soft": 0}, []
     n_checked = 0
     for terrain in TERRAINS:
         for slip in SLIPS:
             rr = [r for r in recs if r["terrain"] == terrain and r["slip"] == slip]
             sensor = rr[0]["sensor"]
-            true = C.mean(r["true_sinkage"] for r in rr)
-            cl = C.mean(C.estimate_value(r, "classic", "sinkage") for r in rr)
-            so = C.mean(C.estimate_value(r, "soft", "sinkage") for r in rr)
-            sd = C.mean(float(r["soft_sinkage_std"]) for r in rr)
-            fails = sum(C.failed(r, "classic") for r in rr), sum(C.failed(r, "soft") for r in rr)
+            true = sm.mean(records.truth(rr, "sinkage"))
+            cl = sm.mean(records.values(rr, "classic", "sinkage"))
+            so = sm.mean(records.values(rr, "soft", "sinkage"))
+            sd = sm.mean(float(r["soft_sinkage_std"]) for r in rr)
+            fails = records.n_failed(rr, "classic"), records.n_failed(rr, "soft")
             exp = EXPECTED[terrain]
             marks = {}
             for key, val in (("truth", true), ("classic", cl), ("soft", so)):
@@ -118,7 +124,7 @@ def run(setup: C.Setup) -> dict[str, Any]:
                 if exp:
                     checks[key] += int(ok)
             n_checked += bool(exp)
-            runs.append(
+            means.append(
                 {"terrain": terrain, "slip": slip, "sensor": sensor, "true": true, "classic": cl}
                 | {"soft": so, "soft_std": sd}
             )
@@ -126,11 +132,11 @@ def run(setup: C.Setup) -> dict[str, Any]:
                 [
                     terrain,
                     f"{slip:.1f}",
-                    C.fmt(sensor),
-                    C.fmt(true),
-                    C.fmt(cl),
-                    f"{C.fmt(so)} ± {C.fmt(1.96 * sd)}",
-                    C.fmt(true - sensor, 2),
+                    report.fmt(sensor),
+                    report.fmt(true),
+                    report.fmt(cl),
+                    f"{report.fmt(so)} ± {report.fmt(1.96 * sd)}",
+                    report.fmt(true - sensor, 2),
                     {1: "true > sensor", -1: "true < sensor", 0: "—"}[exp],
                     marks["truth"],
                     marks["classic"],
@@ -138,27 +144,24 @@ def run(setup: C.Setup) -> dict[str, Any]:
                     f"{fails[0]}/{fails[1]}",
                 ]
             )
-    err = {
-        m: C.median(abs(C.estimate_value(r, m, "sinkage") - r["true_sinkage"]) for r in recs)
-        for m in ("classic", "soft")
-    }
-    _figure(setup, runs)
+    err = {m: sm.median(records.abs_errors(recs, m, "sinkage")) for m in ("classic", "soft")}
+    _figure(setup, means)
     text = "\n\n".join(
         [
             "# Terrain adaptability (paper Fig. 8)",
-            C.generated_line(setup, f"{NAME}.py", time.perf_counter() - t0, len(frames)),
+            report.generated_line(setup, f"{NAME}.py", meta["seconds"], meta["frames"]),
             f"Load {LOAD_N:.0f} N; the sensor value (DSDV) is the wheel's lowest point below the "
             "flat soil level (the paper's displacement sensor), from Bekker's sinkage for the "
             "paper's Table 1 soil times a lug factor of "
-            f"{C.LUG_SINKAGE_FACTOR:g} (an assumption) and the slip-sinkage factor (1 + s) / "
+            f"{paper.LUG_SINKAGE_FACTOR:g} (an assumption) and the slip-sinkage factor (1 + s) / "
             "(1 - s/2). Slip also bulldozes: a rut behind the wheel on every terrain and a pile "
             "ahead on flat and rough terrain. Raised: a "
             f"{MOUND_MM:g} mm mound; hollow: a hollow min({HOLLOW_MM:g} mm, z/2) deep; rough: "
             "digs of 0-8 mm varying along the track. True sinkage: Eq. 1 on the true surface. "
-            f"{per_run} frame(s) per run (wheel phase, texture and feature positions vary); "
-            "values are run means; soft ± is the mean reported 95 % half-interval (1.96 σ). "
-            "A frame a method does not measure counts as 0 mm.",
-            C.md_table(
+            f"{meta['per_run']} frame(s) per run (wheel phase, texture and feature positions "
+            "vary); values are run means; soft ± is the mean reported 95 % half-interval (1.96 σ). "
+            f"Errors: {sm.RULE}; a run's mean is over its measured frames.",
+            report.md_table(
                 [
                     "terrain",
                     "slip",
@@ -178,14 +181,14 @@ def run(setup: C.Setup) -> dict[str, Any]:
             f"Expected ordering holds (raised, hollow, rough; {n_checked} runs): truth "
             f"{checks['truth']}/{n_checked}, classic {checks['classic']}/{n_checked}, soft "
             f"{checks['soft']}/{n_checked}. Median |error| against the true sinkage over all "
-            f"{len(recs)} frames: classic {C.fmt(err['classic'])} mm, soft "
-            f"{C.fmt(err['soft'])} mm.",
+            f"{len(recs)} frames: classic {report.fmt(err['classic'])} mm, soft "
+            f"{report.fmt(err['soft'])} mm.",
             f"![terrain adaptability]({NAME}.png)",
         ]
     )
-    C.write_md(setup, NAME, text)
+    report.write_md(setup, NAME, text)
     return {
-        "frames": len(frames),
+        "frames": len(recs),
         "ordering_checked": n_checked,
         "ordering_truth": checks["truth"],
         "ordering_classic": checks["classic"],
@@ -195,14 +198,14 @@ def run(setup: C.Setup) -> dict[str, Any]:
     }
 
 
-def _figure(setup: C.Setup, runs: list[dict[str, Any]]) -> None:
-    fig, axes = C.figure(2, 1, (10.0, 7.5))
+def _figure(setup: runs.Setup, means: list[dict[str, Any]]) -> None:
+    fig, axes = report.figure(2, 1, (10.0, 7.5))
     ax, ax2 = axes[0, 0], axes[1, 0]
-    x = np.arange(len(runs))
-    col = C.METHOD_COLOURS
+    x = np.arange(len(means))
+    col = report.METHOD_COLOURS
     ax.bar(
         x - 0.2,
-        [r["sensor"] for r in runs],
+        [r["sensor"] for r in means],
         0.4,
         color=col["sensor"],
         alpha=0.55,
@@ -210,7 +213,7 @@ def _figure(setup: C.Setup, runs: list[dict[str, Any]]) -> None:
     )
     ax.bar(
         x + 0.2,
-        [r["true"] for r in runs],
+        [r["true"] for r in means],
         0.4,
         color="#cccccc",
         edgecolor="k",
@@ -218,22 +221,22 @@ def _figure(setup: C.Setup, runs: list[dict[str, Any]]) -> None:
     )
     ax.plot(
         x + 0.2,
-        [r["classic"] for r in runs],
+        [r["classic"] for r in means],
         "o",
         color=col["classic"],
         label="classic (paper's method)",
     )
     ax.errorbar(
         x + 0.2,
-        [r["soft"] for r in runs],
-        yerr=[1.96 * r["soft_std"] for r in runs],
+        [r["soft"] for r in means],
+        yerr=[1.96 * r["soft_std"] for r in means],
         fmt="s",
         ms=4,
         color=col["soft"],
         capsize=3,
         label="soft ± 1.96σ",
     )
-    labels = [f"{r['terrain']}\ns={r['slip']:.1f}" for r in runs]
+    labels = [f"{r['terrain']}\ns={r['slip']:.1f}" for r in means]
     for a in (ax, ax2):
         a.set_xticks(x, labels, fontsize=8)
         for k in range(1, len(TERRAINS)):
@@ -244,25 +247,29 @@ def _figure(setup: C.Setup, runs: list[dict[str, Any]]) -> None:
     for m in ("classic", "soft"):
         ax2.plot(
             x,
-            [r[m] - r["true"] for r in runs],
+            [r[m] - r["true"] for r in means],
             "o-" if m == "classic" else "s-",
             color=col[m],
             label=f"{m} - true",
         )
     ax2.plot(
-        x, [r["sensor"] - r["true"] for r in runs], "^:", color=col["sensor"], label="sensor - true"
+        x,
+        [r["sensor"] - r["true"] for r in means],
+        "^:",
+        color=col["sensor"],
+        label="sensor - true",
     )
     ax2.axhline(0, color="k", lw=0.8)
     ax2.set_ylabel("difference from true sinkage (mm)")
     ax2.set_xlabel("run (terrain, slip ratio)")
     ax2.set_title("Error against the true sinkage (sensor error = what the base level misses)")
     ax2.legend(fontsize=8)
-    C.save_figure(setup, fig, NAME)
+    report.save_figure(setup, fig, NAME)
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup, _ = C.parse_args(__doc__.splitlines()[0], argv)
-    C.timed(run, setup, NAME)
+    setup, _ = runs.parse_args(__doc__.splitlines()[0], argv)
+    runs.timed(run, setup, NAME)
     return 0
 
 

@@ -27,7 +27,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-import common as C
+from common import paper, records, report, runs
+
+from sinkjax import metrics as sm
 
 COMPUTE = ("exp_lighting", "paper_precision", "paper_terrain", "paper_depth")  # longest first
 READERS = ("exp_uncertainty", "exp_calibration", "exp_speed")
@@ -46,13 +48,13 @@ TITLES = {
 }
 
 
-def _worker_command(names: tuple[str, ...], setup: C.Setup) -> list[str]:
+def _worker_command(names: tuple[str, ...], setup: runs.Setup) -> list[str]:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--only", ",".join(names)]
     cmd += ["--out-dir", str(setup.out_dir), "--cache-dir", str(setup.cache_dir)]
     return cmd + ["--seed", str(setup.seed)] + (["--quick"] if setup.quick else [])
 
 
-def _run_in_process(name: str, setup: C.Setup, refresh: bool = False) -> bool:
+def _run_in_process(name: str, setup: runs.Setup, refresh: bool = False) -> bool:
     """Run one experiment module's ``run`` here; False (and the traceback logged) on failure."""
     import importlib
     import traceback
@@ -60,11 +62,11 @@ def _run_in_process(name: str, setup: C.Setup, refresh: bool = False) -> bool:
     module = importlib.import_module(name)
     try:
         if name in ("exp_calibration", "exp_speed"):
-            C.timed(lambda s: module.run(s, refresh=refresh), setup, name)
+            runs.timed(lambda s: module.run(s, refresh=refresh), setup, name)
         else:
-            C.timed(module.run, setup, name)
+            runs.timed(module.run, setup, name)
     except Exception:
-        C.log(f"{name}: FAILED\n{traceback.format_exc()}")
+        runs.log(f"{name}: FAILED\n{traceback.format_exc()}")
         return False
     return True
 
@@ -83,17 +85,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default=None, help=argparse.SUPPRESS)  # a worker: these, in-process
     args = p.parse_args(argv)
     t0 = time.perf_counter()
-    setup = C.make_setup(args.quick, args.out_dir, args.cache_dir, args.seed)
+    setup = runs.make_setup(args.quick, args.out_dir, args.cache_dir, args.seed)
     if args.only:
         ok = [_run_in_process(name, setup) for name in args.only.split(",")]
         return 0 if all(ok) else 1
     for name in (*COMPUTE, *READERS):
         for stale in (
             setup.cache_dir / f"{name}_frames.csv",
+            setup.cache_dir / f"{name}_run.json",
             setup.cache_dir / f"{name}_summary.json",
         ):
             stale.unlink(missing_ok=True)
-    C.log(f"run_all ({setup.mode}): out {setup.out_dir}, cache {setup.cache_dir}")
+    runs.log(f"run_all ({setup.mode}): out {setup.out_dir}, cache {setup.cache_dir}")
     failed: list[str] = []
     # Lighting (calibration: a long compile) in one worker, the paper experiments in the other;
     # each worker compiles the soft method once for all its experiments.
@@ -101,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     procs = [(g, subprocess.Popen(_worker_command(g, setup))) for g in groups]
     for group, proc in procs:
         if proc.wait():
-            failed += [n for n in group if C.load_summary(setup.cache_dir, n) is None]
+            failed += [n for n in group if runs.load_summary(setup.cache_dir, n) is None]
     for name in READERS:
         if name == "exp_uncertainty" and failed:
             failed.append(name)  # it pools the failed experiments' records
@@ -111,7 +114,9 @@ def main(argv: list[str] | None = None) -> int:
             failed.append(name)
     seconds = time.perf_counter() - t0
     index = write_index(setup, seconds, failed)
-    C.log(f"run_all: wrote {index} in {seconds:.0f} s" + (f"; FAILED: {failed}" if failed else ""))
+    runs.log(
+        f"run_all: wrote {index} in {seconds:.0f} s" + (f"; FAILED: {failed}" if failed else "")
+    )
     return 1 if failed else 0
 
 
@@ -119,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _pct(x: Any, nd: int = 1) -> str:
-    return "—" if x is None else f"{C.fmt(float(x), nd)} %"
+    cell = report.fmt(None if x is None else float(x), nd)
+    return cell if cell == "—" else f"{cell} %"
 
 
 def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
@@ -130,7 +136,7 @@ def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
         for q, short in (("sinkage", "REDS"), ("theta1", "REEA"), ("theta2", "REDA")):
             rows.append(
                 [
-                    f"{C.LABELS[q]}: relative error, flat terrain, mean of the 16 experiments "
+                    f"{report.LABELS[q]}: relative error, flat terrain, mean of the 16 experiments "
                     f"(Tables 2-3, {short})",
                     _pct(pr[f"paper_{q}"], 2),
                     _pct(pr[f"classic_{q}"], 2),
@@ -143,7 +149,7 @@ def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
         rows.append(
             [
                 f"sinkage: median relative error, z0 ≥ 5 mm ({dp['deep']} frames, 5-40 mm)",
-                f"~{C.PAPER_CLAIM_SINKAGE_PCT:g} % (claim)",
+                f"~{paper.PAPER_CLAIM_SINKAGE_PCT:g} % (claim)",
                 _pct(dp["classic_deep_rel_pct"]),
                 _pct(dp["soft_deep_rel_pct"]),
                 "[depth](paper_depth.md)",
@@ -152,7 +158,7 @@ def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
         rows.append(
             [
                 "angles: median relative error θ1 / θ2, z0 ≥ 5 mm",
-                f"~{C.PAPER_CLAIM_ANGLE_PCT:g} % (claim)",
+                f"~{paper.PAPER_CLAIM_ANGLE_PCT:g} % (claim)",
                 f"{_pct(dp['classic_deep_theta1_rel_pct'])} / "
                 f"{_pct(dp['classic_deep_theta2_rel_pct'])}",
                 f"{_pct(dp['soft_deep_theta1_rel_pct'])} / {_pct(dp['soft_deep_theta2_rel_pct'])}",
@@ -163,12 +169,14 @@ def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
             rows.append(
                 [
                     f"sinkage {span} ({dp[tag]} frames): median relative / absolute error; "
-                    "frames not measured",
+                    "frames read as no contact / failed",
                     '"lower accuracy" below 5 mm (no number)',
-                    f"{_pct(dp[f'classic_{tag}_rel_pct'])} / "
-                    f"{C.fmt(dp[f'classic_{tag}_abs_mm'])} mm; {dp[f'classic_{tag}_failed']}",
-                    f"{_pct(dp[f'soft_{tag}_rel_pct'])} / {C.fmt(dp[f'soft_{tag}_abs_mm'])} mm; "
-                    f"{dp[f'soft_{tag}_failed']}",
+                    *(
+                        f"{_pct(dp[f'{m}_{tag}_rel_pct'])} / "
+                        f"{report.fmt(dp[f'{m}_{tag}_abs_mm'])} mm; "
+                        f"{dp[f'{m}_{tag}_no_contact']} / {dp[f'{m}_{tag}_failed']}"
+                        for m in ("classic", "soft")
+                    ),
                     "[depth](paper_depth.md)",
                 ]
             )
@@ -189,40 +197,47 @@ def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
             [
                 "terrain runs: median absolute sinkage error (all 12 runs)",
                 "—",
-                f"{C.fmt(te['median_abs_err_classic_mm'])} mm",
-                f"{C.fmt(te['median_abs_err_soft_mm'])} mm",
+                f"{report.fmt(te['median_abs_err_classic_mm'])} mm",
+                f"{report.fmt(te['median_abs_err_soft_mm'])} mm",
                 "[terrain](paper_terrain.md)",
             ]
         )
     li = s.get("exp_lighting")
     if li:
+        factors = ("shadow", "light", "cast", "dust")
         worst = {
-            m: max(float(li[f"{f}_max_{m}_rel_pct"]) for f in ("shadow", "light", "cast", "dust"))
+            m: sm.maximum(li[f"{f}_max_{m}_rel_pct"] for f in factors)
+            for m in ("classic", "soft", "calibrated")
+        }
+        most_failed = {
+            m: max(int(li[f"{f}_max_{m}_failed"]) for f in factors)
             for m in ("classic", "soft", "calibrated")
         }
         rows.append(
             [
-                "light and shadow: median relative sinkage error over all conditions "
-                "(soft-calibrated in brackets)",
+                f"light and shadow ({li['test_frames']} test frames): median relative sinkage "
+                "error over all conditions; failed frames (soft-calibrated in brackets)",
                 "future work",
-                _pct(li["all_classic_rel_pct"]),
-                f"{_pct(li['all_soft_rel_pct'])} ({_pct(li['all_calibrated_rel_pct'])})",
+                f"{_pct(li['all_classic_rel_pct'])}; {li['all_classic_failed']}",
+                f"{_pct(li['all_soft_rel_pct'])}; {li['all_soft_failed']} "
+                f"({_pct(li['all_calibrated_rel_pct'])}; {li['all_calibrated_failed']})",
                 "[lighting](exp_lighting.md)",
             ]
         )
         rows.append(
             [
-                "light and shadow: worst condition's median relative sinkage error "
-                "(soft-calibrated in brackets)",
+                "light and shadow: worst condition's median relative sinkage error; most failed "
+                "frames in one condition (soft-calibrated in brackets)",
                 "future work",
-                _pct(worst["classic"]),
-                f"{_pct(worst['soft'])} ({_pct(worst['calibrated'])})",
+                f"{_pct(worst['classic'])}; {most_failed['classic']}",
+                f"{_pct(worst['soft'])}; {most_failed['soft']} "
+                f"({_pct(worst['calibrated'])}; {most_failed['calibrated']})",
                 "[lighting](exp_lighting.md)",
             ]
         )
     un = s.get("exp_uncertainty")
     if un:
-        cov = " / ".join(_pct(un[f"coverage_{q}_95"]) for q in C.QUANTITIES)
+        cov = " / ".join(_pct(un[f"coverage_{q}_95"]) for q in records.QUANTITIES)
         rows.append(
             [
                 f"95 % intervals: empirical coverage z0 / θ1 / θ2 ({un['frames']} frames)",
@@ -255,34 +270,34 @@ def headline(s: dict[str, dict[str, Any]]) -> list[list[str]]:
                         f"throughput at {size} (frames/s, CPU; soft batch "
                         f"{sp[f'{size}_soft_batch']})",
                         "—",
-                        C.fmt(sp[key]),
-                        C.fmt(sp[f"{size}_soft_fps"]),
+                        report.fmt(sp[key]),
+                        report.fmt(sp[f"{size}_soft_fps"]),
                         "[speed](exp_speed.md)",
                     ]
                 )
     return rows
 
 
-def write_index(setup: C.Setup, seconds: float, failed: list[str]) -> Path:
-    summaries = {n: s for n in ORDER if (s := C.load_summary(setup.cache_dir, n)) is not None}
+def write_index(setup: runs.Setup, seconds: float, failed: list[str]) -> Path:
+    summaries = {n: s for n in ORDER if (s := runs.load_summary(setup.cache_dir, n)) is not None}
     flag = " --quick" if setup.quick else ""
     lines = [
         "# Paper experiments, reproduced and extended"
         + (" (quick smoke run)" if setup.quick else ""),
         f"Generated by `python experiments/run_all.py{flag}` (`make experiments"
         f"{'-quick' if setup.quick else ''}`) in {seconds / 60:.1f} min ({seconds:.0f} s) on "
-        f"{C.machine()}; seed {setup.seed}, {setup.width}x{setup.height} px frames of one "
+        f"{runs.machine()}; seed {setup.seed}, {setup.width}x{setup.height} px frames of one "
         "synthetic camera set-up modelled on the paper's rig (R = 140 mm, 28 lugs 15 mm high, "
         "one lamp). Every number below is produced by the scripts; the paper's numbers are "
-        "copied from its text (Tables 2-3 and its claims).",
+        f"copied from its text (Tables 2-3 and its claims). Errors: {sm.RULE}.",
         "The classic method is this project's re-implementation of the paper's pipeline "
-        "(`sinkjax.classic.estimator.estimate_classic`, default options); the soft method is "
-        "`sinkjax.soft.estimator.estimate_batch` with the default rig. Errors are against exact "
+        "(`sinkjax.estimate_classic`, default options); the soft method is "
+        "`sinkjax.estimate_batch` with the default rig. Errors are against exact "
         "synthetic truth (Eqs. 1-3 on the true surface); the paper's own errors were against "
         "a displacement sensor and hand-measured angles on real images, so the paper column "
         "is context, not a like-for-like score.",
         "## Headline",
-        C.md_table(
+        report.md_table(
             ["quantity", "paper", "classic (paper's method)", "soft", "details"],
             headline(summaries),
         ),

@@ -17,8 +17,7 @@ import sys
 import numpy as np
 from benchmark import make_frames
 
-from sinkjax.soft.estimator import estimate_batch
-from sinkjax.soft.uncertainty import UncertaintyModel
+import sinkjax as sj
 
 
 def fit(err: np.ndarray, raw: np.ndarray) -> tuple[float, float]:
@@ -47,12 +46,12 @@ def main(argv: list[str] | None = None) -> int:
     for group in recs.values():
         for i in range(0, len(group), 8):
             chunk = group[i : i + 8]
-            res = estimate_batch(
+            res = sj.estimate_batch(
                 [f.image for f in chunk],
                 chunk[0].rig,
                 [f.name for f in chunk],
                 pad_to=8,
-                uncertainty=UncertaintyModel.raw(),
+                uncertainty=sj.UncertaintyModel.raw(),
             )
             rows += list(zip(chunk, res, strict=True))
     z_err, z_raw, a_err, a_raw = [], [], [], []
@@ -71,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     ks = np.quantile(np.abs(ze) / np.sqrt((sa * zr) ** 2 + sf**2), 0.95) / 1.96
     ka = np.quantile(np.abs(ae) / np.sqrt((aa * ar) ** 2 + af**2), 0.95) / 1.96
     sa, sf, aa, af = sa * ks, sf * ks, aa * ka, af * ka
-    model = UncertaintyModel(float(sa), float(aa), float(sf), float(af))
+    model = sj.UncertaintyModel(float(sa), float(aa), float(sf), float(af))
     zs = np.sqrt((sa * zr) ** 2 + sf**2)
     as_ = np.sqrt((aa * ar) ** 2 + af**2)
     print(f"{len(ze)} frames in contact")

@@ -89,7 +89,7 @@ def test_run_all_quick_writes_every_table_and_figure(tmp_path: Path) -> None:
 
 
 def test_paper_tables_copied_from_the_paper() -> None:
-    c = _module("common")
+    c = _module("common.paper")
     assert c.PAPER_SLIPS == (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
     for load in (30, 90):
         for q in ("sinkage", "theta1", "theta2"):
@@ -102,7 +102,7 @@ def test_paper_tables_copied_from_the_paper() -> None:
 
 
 def test_soil_model_matches_bekker_by_hand() -> None:
-    c = _module("common")
+    c = _module("common.paper")
     # Bekker by hand, 90 N, Table 1 soil, b = 0.15 m, D = 0.28 m.
     k = -20.7e3 / 0.15 + 1594.8e3
     z = (3 * 90 / ((3 - 0.79) * 0.15 * k * math.sqrt(0.28))) ** (2 / 2.58)
@@ -116,9 +116,9 @@ def test_terrain_design_orders_true_sinkage_as_the_paper_says(tmp_path: Path) ->
     """Raised terrain: true sinkage > the flat-level sensor value; hollow, rough: less."""
     from sinkjax import synth as S
 
-    c = _module("common")
+    c = _module("common.scenery")
     terrain = _module("paper_terrain")
-    setup = c.make_setup(True, tmp_path / "o", tmp_path / "c")
+    setup = _module("common.runs").make_setup(True, tmp_path / "o", tmp_path / "c")
     base = c.paper_scene(setup)
     for name, sign in terrain.EXPECTED.items():
         for slip in terrain.SLIPS:
@@ -135,9 +135,9 @@ def test_every_experiment_scene_has_one_rig(tmp_path: Path) -> None:
     """Terrain and lighting change nothing the rig depends on: one compile per image size."""
     from sinkjax import synth as S
 
-    c = _module("common")
+    c = _module("common.scenery")
     lighting = _module("exp_lighting")
-    setup = c.make_setup(False, tmp_path / "o", tmp_path / "c")
+    setup = _module("common.runs").make_setup(False, tmp_path / "o", tmp_path / "c")
     base = c.paper_scene(setup)
     scenes = [c.place(base, d, **c.bulldozing(base, d, 0.5)) for d in (1.0, 20.0)]
     for factor, (_, levels, _) in lighting.FACTORS.items():
@@ -150,19 +150,65 @@ def test_coverage_statistics() -> None:
     u = _module("exp_uncertainty")
     assert u.z_for(0.95) == pytest.approx(1.959964, abs=1e-5)
     assert u.z_for(0.6827) == pytest.approx(1.0, abs=1e-3)
-    rng = np.random.default_rng(0)
-    sd = rng.uniform(0.5, 2.0, 20000)
-    err = rng.standard_normal(20000) * sd
-    for p in (0.5, 0.9, 0.99):
-        assert u.coverage(err, sd, p) == pytest.approx(p, abs=0.01)
+    assert statistics.NormalDist().cdf(u.z_for(0.8)) == pytest.approx(0.9)
     lo, hi = u.wilson(45, 50)
     assert lo < 0.9 < hi and 0 <= lo and hi <= 1
-    assert statistics.NormalDist().cdf(u.z_for(0.8)) == pytest.approx(0.9)
+    # Wilson by hand for 8 of 10 at z = 1.96: centre (0.8 + 0.19208) / 1.38416.
+    lo, hi = u.wilson(8, 10)
+    half = 1.96 * math.sqrt(0.8 * 0.2 / 10 + 1.96**2 / 400) / (1 + 1.96**2 / 10)
+    assert (lo + hi) / 2 == pytest.approx((0.8 + 1.96**2 / 20) / (1 + 1.96**2 / 10))
+    assert (hi - lo) / 2 == pytest.approx(half)
+    # Coverage of records by the rule of sinkjax.metrics: only soft-ok frames with a sigma.
+    recs = [
+        {"true_sinkage": 10.0, "soft_status": "ok", "soft_sinkage": 10.5, "soft_sinkage_std": 0.3},
+        {"true_sinkage": 10.0, "soft_status": "ok", "soft_sinkage": 10.2, "soft_sinkage_std": 0.3},
+        {"true_sinkage": 5.0, "soft_status": "fit_failed", "soft_sinkage": math.nan},
+    ]
+    for r in recs:
+        r.setdefault("soft_sinkage_std", math.nan)
+    hits = u.covered(recs, "sinkage", 0.95)  # 1.96 * 0.3 = 0.588: 0.5 in, 0.2 in
+    assert hits[:2].tolist() == [1.0, 1.0] and math.isnan(hits[2])
+    hits = u.covered(recs, "sinkage", 0.5)  # 0.674 * 0.3 = 0.202: 0.5 out, 0.2 in
+    assert hits[:2].tolist() == [0.0, 1.0]
 
 
-def test_markdown_table_parsing() -> None:
-    c = _module("common")
-    text = "intro\n\n| rig | default | cal s (wall) |\n|---|---|---|\n| a/0 | 1.8 | 78 |\n\nend"
-    rows = c.parse_md_table(text, "rig")
-    assert rows == [{"rig": "a/0", "default": "1.8", "cal s (wall)": "78"}]
-    assert c.number("1.4x") == 1.4 and math.isnan(c.number("-"))
+def test_reports_are_made_from_saved_numbers(tmp_path: Path) -> None:
+    """bench.py and benchmark.py write their Markdown from the JSON they save, which the
+    readers (exp_speed) use instead of parsing Markdown."""
+    bench = _module("bench")
+    data = {
+        "quick": True,
+        "seconds": 12.0,
+        "date": "2026-01-01 00:00",
+        "machine": "test machine",
+        "load_average": [1.0, 2.0, 3.0],
+        "cpu_count": 2,
+        "rows": [
+            {"method": "classic", "size": "640x480", "batch": 1, "frames": 4, "compile_s": 0.0}
+            | {"seconds": 2.0, "fps": 2.0, "peak_mib": 300.0, "statuses": {"ok": 4}},
+            {"method": "soft", "size": "640x480", "batch": 8, "frames": 8, "compile_s": 5.0}
+            | {"seconds": 1.0, "fps": 8.0, "peak_mib": 800.0, "statuses": {"ok": 8}},
+        ],
+    }
+    text = bench.report(data)
+    assert "| soft | 640x480 | 8 | 8 | 5.0 | 8.00 | 125 | 800 |" in text
+    assert "soft is 4.0x classic" in text
+    benchmark = _module("benchmark")
+    cols = [
+        {
+            "name": "soft",
+            "seconds_per_frame": 0.05,
+            "metrics": dict.fromkeys((key for _, key, _ in benchmark.ROWS), 1.0)
+            | {"failed_pct": None},
+        },
+    ]
+    table = benchmark.table(cols)
+    assert "| failed frames (%) | — | <= 2 |" in table
+    assert "| time per frame, steady state (ms) | 50.0 |" in table
+    speed = _module("exp_speed")
+    runs = _module("common.runs")
+    setup = runs.make_setup(True, tmp_path / "out", tmp_path / "cache")
+    (setup.out_dir / "bench.json").write_text(__import__("json").dumps(data), encoding="utf-8")
+    summary = speed.run(setup)
+    assert summary["640x480_classic_fps"] == 2.0 and summary["640x480_soft_fps"] == 8.0
+    assert summary["640x480_soft_batch"] == "8"

@@ -9,6 +9,7 @@ OpenCV pipeline, ``_synth`` the renderer with exact truth, and ``_io``/``_pipeli
 the command line. The optional ``sinkjax.torch`` holds the PyTorch/kornia side.
 """
 
+from . import metrics as metrics
 from .app.frames import read_image as read_image
 from .app.overlay import draw_overlay as draw_overlay
 from .app.pipeline import estimate_paths as estimate_paths, estimate_stream as estimate_stream

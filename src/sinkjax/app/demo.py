@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import csv
-import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
-from .plots import Matched, match_truth, number, plot_accuracy
+from .. import metrics
+from .plots import QUANTITIES, Matched, match_truth, number, plot_accuracy
 from .run import RunSummary, estimate_to_csv
 from .sources import RIG_FILENAME, resolve_rig
 
@@ -20,7 +20,8 @@ _MIN_SINKAGE_FOR_RELATIVE_MM = 1.0
 
 @dataclass
 class Accuracy:
-    """Errors of the measured frames against the truth (absolute values; None when no frames)."""
+    """Errors against the truth by the rule of :mod:`sinkjax.metrics`: failed frames are left
+    out of the errors and counted in ``n_failed``; ``no_contact`` is a measurement of 0."""
 
     n_frames: int
     n_failed: int
@@ -42,7 +43,7 @@ class Accuracy:
         lines = [f"{'':<{width}}  {'median':>8}  {'max':>8}  {'frames':>6}"]
         for name, values in rows:
             if values:
-                med, top = f"{statistics.median(values):8.3f}", f"{max(values):8.3f}"
+                med, top = f"{metrics.median(values):8.3f}", f"{metrics.maximum(values):8.3f}"
             else:
                 med = top = f"{'n/a':>8}"
             lines.append(f"{name:<{width}}  {med}  {top}  {len(values):>6}")
@@ -54,28 +55,34 @@ class Accuracy:
 
 
 def accuracy(matched: list[Matched]) -> Accuracy:
-    """Absolute errors per quantity over the frames that have both an estimate and a truth."""
-    acc = Accuracy(0, 0, {}, [], [], [], [])
-    for m in matched:
-        if m.truth is None:
-            continue
-        acc.n_frames += 1
-        if not m.measured:
-            acc.n_failed += 1
-            status = m.result.get("status", "?")
-            acc.failed_by_status[status] = acc.failed_by_status.get(status, 0) + 1
-            continue
-        for col, errors in (
-            ("sinkage_mm", acc.sinkage_abs_mm),
-            ("theta1_deg", acc.theta1_abs_deg),
-            ("theta2_deg", acc.theta2_abs_deg),
-        ):
-            est, true = number(m.result.get(col)), number(m.truth.get(col))
-            if est is not None and true is not None:
-                errors.append(abs(est - true))
-                if col == "sinkage_mm" and abs(true) >= _MIN_SINKAGE_FOR_RELATIVE_MM:
-                    acc.sinkage_rel_pct.append(100.0 * abs(est - true) / abs(true))
-    return acc
+    """Absolute errors per quantity over the frames that have a truth (``sinkjax.metrics``);
+    relative sinkage errors only where the true sinkage is at least 1 mm."""
+    rows = [m for m in matched if m.truth is not None]
+    status = [m.result.get("status", "?") for m in rows]
+    failed = metrics.failed(status)
+    by_status: dict[str, int] = {}
+    for s, bad in zip(status, failed, strict=True):
+        if bad:
+            by_status[s] = by_status.get(s, 0) + 1
+    errors: dict[str, list[float]] = {}
+    rel: list[float] = []
+    for col, _, truth_col, _, _ in QUANTITIES:
+        true = [number(m.truth.get(truth_col)) for m in rows if m.truth is not None]
+        est = [number(m.result.get(col)) for m in rows]
+        errors[col] = metrics.finite(metrics.abs_error(true, est, status)).tolist()
+        if col == "sinkage_mm":
+            big = [t is not None and abs(t) >= _MIN_SINKAGE_FOR_RELATIVE_MM for t in true]
+            pct = metrics.relative_error_pct(true, est, status)
+            rel = metrics.finite(pct[big]).tolist()
+    return Accuracy(
+        len(rows),
+        int(failed.sum()),
+        by_status,
+        errors["sinkage_mm"],
+        rel,
+        errors["theta1_deg"],
+        errors["theta2_deg"],
+    )
 
 
 @dataclass

@@ -8,7 +8,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..status import Status
+from .. import metrics
 from .smoothing import SmoothingOptions
 
 QUANTITIES = (
@@ -28,7 +28,8 @@ class Matched:
 
     @property
     def measured(self) -> bool:
-        return self.result.get("status") in (Status.OK, Status.NO_CONTACT)
+        """A measurement by :mod:`sinkjax.metrics` (``ok`` or ``no_contact``, which reads 0)."""
+        return bool(metrics.measured([self.result.get("status", "")])[0])
 
 
 def number(cell: str | None) -> float | None:
@@ -191,9 +192,7 @@ def plot_series(
     header, rows = read_results(results_csv)
     x, xlabel = _frame_axis([r["image"] for r in rows])
     xs = np.asarray(x)
-    measured = np.array(
-        [r.get("status") in (Status.OK, Status.NO_CONTACT) for r in rows], dtype=bool
-    )
+    measured = metrics.measured([r.get("status", "") for r in rows])
     smooth: list[dict[str, float]] | None = None
     if smoothed:
         if all(q[2] in header for q in SMOOTHED):

@@ -1,0 +1,8 @@
+"""Shared pieces of the paper-reproduction experiments, one module per job:
+
+- :mod:`.paper`: the paper's numbers and the soil model;
+- :mod:`.scenery`: the shared camera set-up and terrain;
+- :mod:`.runs`: quick/full set-up, command line, logging, summaries;
+- :mod:`.records`: rendering, measuring, per-frame CSV and errors (:mod:`sinkjax.metrics`);
+- :mod:`.report`: Markdown tables and figures.
+"""
