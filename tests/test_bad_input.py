@@ -1,4 +1,4 @@
-"""Careless or unlucky input: odd file names, rigs with a BOM or a misspelt key, --out on an input."""
+"""Careless or unlucky input: odd file names, rigs with a BOM or a misspelt key, --out on input."""
 
 from __future__ import annotations
 

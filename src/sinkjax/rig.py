@@ -1,4 +1,4 @@
-"""The rig file (docs/conventions.md §2): wheel radius, confidence rectangle, travel, segmentation."""
+"""The rig file (docs/conventions.md §2): wheel radius, confidence rectangle, travel, thresholds."""
 
 from __future__ import annotations
 

@@ -57,8 +57,8 @@ def _soft_batch() -> BatchMethod:
         estimate_batch: BatchMethod = module.estimate_batch
     except (ImportError, AttributeError) as e:
         raise MethodUnavailable(
-            "the soft method (sinkjax.soft.estimator.estimate_batch) is not available in this install "
-            f"({e}); use --method classic, or reinstall sinkjax"
+            "the soft method (sinkjax.soft.estimator.estimate_batch) is not available in this "
+            f"install ({e}); use --method classic, or reinstall sinkjax"
         ) from e
     return estimate_batch
 

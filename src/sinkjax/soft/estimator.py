@@ -35,10 +35,10 @@ MIN_BOUNDARY_POINTS = 4.0
 class SoftEstimate(eqx.Module):
     """One frame's soft estimate: sinkage in mm, angles in radians, each with one sigma.
 
-    ``params`` are the fitted model (cx, cy, r px; k, b; end lines, see ``_model``) and
-    ``params_std`` their sigmas before the uncertainty model's scaling; ``status`` indexes
-    :class:`sinkjax.Status` by its ``code``; the boundary arrays are the outline points and their boundary weights
-    (for overlays). For no contact the measurements are 0 (docs/conventions.md §1).
+    ``params`` are the fitted model (cx, cy, r px; k, b; end lines, see ``soft.model``) and
+    ``params_std`` their sigmas before the uncertainty model's scaling; ``status`` is a
+    :class:`sinkjax.Status` ``code``; the boundary arrays are the outline points and their
+    boundary weights (for overlays). For no contact the measurements are 0 (docs/conventions.md §1).
     """
 
     sinkage_mm: Float[Array, ""]

@@ -1,5 +1,5 @@
-"""Exact ground truth of a :class:`~.scene.Scene` (docs/conventions.md §1): the paper's quantities from the
-TRUE surface and rim circle, with the conventions' definitions.
+"""Exact ground truth of a :class:`~.scene.Scene` (docs/conventions.md §1): the paper's
+quantities from the TRUE surface and rim circle, with the conventions' definitions.
 """
 
 from __future__ import annotations
@@ -18,7 +18,9 @@ _BOUNDARY_STEP_PX = 0.05  # conventions: boundary sampled uniformly in x, step <
 
 @dataclass
 class Truth:
-    """Exact ground truth of one frame (docs/conventions.md §1). Angles in degrees, k/b/A/B wheel frame."""
+    """Exact ground truth of one frame (docs/conventions.md §1).
+
+    Angles in degrees; k, b, A and B in the wheel frame."""
 
     sinkage_mm: float
     theta1_deg: float
@@ -90,7 +92,8 @@ def boundary_points(scene: Scene) -> tuple[F64, F64]:
 
 
 def true_geometry(scene: Scene) -> Truth:
-    """Eqs. 1-3 on the TRUE surface (docs/conventions.md §1): OLS of the dense boundary, exact A and B."""
+    """Eqs. 1-3 on the TRUE surface (docs/conventions.md §1): OLS of the dense boundary, exact
+    A and B."""
     cx, cy, r = scene.centre_x_px, scene.centre_y_px, scene.radius_px
     x, y = boundary_points(scene)
     if x.size == 0:
