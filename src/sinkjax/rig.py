@@ -96,6 +96,30 @@ def validate_rig_fields(
         raise RigError(f'{source}: travel must be "right" or "left", got {travel!r}')
 
 
+def rect_problem(rect: Any, height: int, width: int) -> str | None:
+    """None if ``rect`` = (x, y, w, h) px lies inside a ``width`` x ``height`` image; else why not.
+
+    The one rule for a confidence rectangle: four integers with x, y >= 0, w, h >= 1,
+    x + w <= width and y + h <= height. The message says how to fix it (rig file or flag).
+    """
+    if (
+        not isinstance(rect, tuple | list)
+        or len(rect) != 4
+        or not all(isinstance(v, int) and not isinstance(v, bool) for v in rect)
+    ):
+        return f"confidence_rect must be four integers [x, y, w, h] in pixels, got {rect!r}"
+    x, y, w, h = rect
+    fix = "fix confidence_rect in the rig or pass --confidence-rect X,Y,W,H"
+    if x < 0 or y < 0 or w < 1 or h < 1:
+        return f"confidence_rect [{x}, {y}, {w}, {h}] needs x, y >= 0 and w, h >= 1; {fix}"
+    if x + w > width or y + h > height:
+        return (
+            f"confidence_rect [{x}, {y}, {w}, {h}] extends beyond the {width}x{height} image "
+            f"(needs x+w <= {width} and y+h <= {height}); {fix}"
+        )
+    return None
+
+
 def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     """Build a Rig from parsed TOML; raises RigError naming the field and the fix."""
     if "wheel_radius_mm" not in data:
