@@ -16,10 +16,12 @@ pytest.importorskip("kornia")
 
 import sinkjax.torch as st  # noqa: E402
 from sinkjax import SegmentationParams  # noqa: E402
+from sinkjax.rig import rect_problem  # noqa: E402
 from sinkjax.soft.colour import rgb_to_hsi as jax_rgb_to_hsi  # noqa: E402
 from sinkjax.soft.estimator import measure  # noqa: E402
 from sinkjax.soft.segmentation import smooth, soft_open, wheel_mask  # noqa: E402
 from sinkjax.synth import recording_scenes, render, rig_for  # noqa: E402
+from sinkjax.torch.bridge import _to_jax, _to_torch  # noqa: E402
 from sinkjax.torch.jax_bridge import (  # noqa: E402
     estimate_values,
     measure_from_mask,
@@ -152,7 +154,7 @@ def test_segmenter_gradcheck_small() -> None:
 def test_soft_hsi_mask_errors() -> None:
     with pytest.raises(ValueError, match=r"\(B, 3, H, W\). Got \(3, 8, 8\)"):
         st.soft_hsi_mask(torch.rand(3, 8, 8), SegmentationParams(), (0, 0, 2, 2))
-    with pytest.raises(ValueError, match="off the 8x8 image"):
+    with pytest.raises(ValueError, match="extends beyond the 8x8 image"):
         st.soft_hsi_mask(torch.rand(1, 3, 8, 8), SegmentationParams(), (6, 0, 4, 2))
     with pytest.raises(ValueError, match="lacks"):
         st.soft_hsi_mask(torch.rand(1, 3, 8, 8), {"p_d_hue": 0.9}, (0, 0, 2, 2))
@@ -192,6 +194,49 @@ def test_lighting_augmentation() -> None:
         st.lighting_augmentation(p=2.0)
 
 
+@pytest.mark.parametrize(
+    "rect",
+    [
+        (0, 0, 7, 5),
+        (6, 4, 1, 1),
+        (-1, 0, 2, 2),
+        (0, -1, 2, 2),
+        (0, 0, 0, 2),
+        (0, 0, 2, 0),
+        (6, 0, 2, 2),
+        (0, 4, 2, 2),
+        (0, 0, 7, 6),
+        (0, 0, 2),
+        (0, 0, 2.0, 2),
+        (0, 0, True, 2),
+    ],
+)
+def test_rect_rule_is_the_rigs(rect) -> None:
+    """Torch accepts exactly the rectangles that cover a non-empty slice of a 7x5 image in full,
+    and rejects the others with :func:`sinkjax.rig.rect_problem`'s message."""
+    ints = len(rect) == 4 and all(type(v) is int for v in rect)
+    pixels = np.zeros((5, 7))
+    inside = (
+        ints
+        and min(rect[:2]) >= 0
+        and min(rect[2:]) >= 1
+        and pixels[rect[1] : rect[1] + rect[3], rect[0] : rect[0] + rect[2]].shape == rect[:1:-1]
+    )
+    images = torch.rand(1, 3, 5, 7, dtype=torch.float64)
+    problem = rect_problem(rect, 5, 7)
+    assert (problem is None) == inside
+    if inside:
+        assert st.soft_hsi_mask(images, SegmentationParams(), rect).shape == (1, 1, 5, 7)
+        return
+    for call in (
+        lambda: st.soft_hsi_mask(images, SegmentationParams(), rect),
+        lambda: st.measure_torch(images, seg=SegmentationParams(), rect=rect),
+    ):
+        with pytest.raises(ValueError) as info:
+            call()
+        assert str(info.value) == problem
+
+
 # ----------------------------------------------------------------------------- bridge
 
 
@@ -208,11 +253,11 @@ def test_measure_torch_errors(frames) -> None:
 
 def test_dlpack_shares_memory_when_it_can() -> None:
     x = torch.rand(2, 3, 4, 5, dtype=torch.float64)
-    a = st._to_jax(x, torch.float64)
+    a = _to_jax(x, torch.float64)
     assert a.unsafe_buffer_pointer() == x.data_ptr()  # zero-copy
-    b = st._to_jax(x.float(), torch.float64)  # dtype mismatch: cast in torch, a copy
+    b = _to_jax(x.float(), torch.float64)  # dtype mismatch: cast in torch, a copy
     np.testing.assert_allclose(np.asarray(b), x.float().double().numpy())
-    back = st._to_torch(a, x)
+    back = _to_torch(a, x)
     assert back.data_ptr() == x.data_ptr() and torch.equal(back, x)
 
 

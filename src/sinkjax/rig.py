@@ -97,6 +97,34 @@ def validate_rig_fields(
         raise RigError(f'{source}: travel must be "right" or "left", got {travel!r}')
 
 
+def rect_problem(rect: Any, height: int, width: int) -> str | None:
+    """None if ``rect`` = (x, y, w, h) px lies inside a ``width`` x ``height`` image; else why not.
+
+    The one rule for a confidence rectangle: four integers with x, y >= 0, w, h >= 1,
+    x + w <= width and y + h <= height. The message says how to fix it (rig file or flag).
+    """
+    if (
+        not isinstance(rect, tuple | list)
+        or len(rect) != 4
+        or not all(isinstance(v, int) and not isinstance(v, bool) for v in rect)
+    ):
+        return f"confidence_rect must be four integers [x, y, w, h] in pixels, got {rect!r}"
+    x, y, w, h = rect
+    fix = "fix confidence_rect in the rig or pass --confidence-rect X,Y,W,H"
+    if x < 0 or y < 0 or w < 1 or h < 1:
+        return (
+            f"the confidence rectangle [x, y, w, h] = [{x}, {y}, {w}, {h}] needs x, y >= 0 and "
+            f"w, h >= 1 to lie inside the image; {fix}"
+        )
+    if x + w > width or y + h > height:
+        return (
+            f"the confidence rectangle [x, y, w, h] = [{x}, {y}, {w}, {h}] extends beyond the "
+            f"{width}x{height} image: it must lie inside it (needs x+w <= {width} and "
+            f"y+h <= {height}); {fix}"
+        )
+    return None
+
+
 def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     """Build a Rig from parsed TOML; raises RigError naming the field and the fix."""
     if "wheel_radius_mm" not in data:
@@ -147,19 +175,6 @@ def _check_keys(data: dict[str, Any], known: tuple[str, ...], source: str, table
             raise RigError(
                 f"{source}: unknown {table}key {key!r}; {hint}known keys: {', '.join(known)}"
             )
-
-
-def rect_problem(rect: tuple[int, int, int, int], height: int, width: int) -> str | None:
-    """None if the confidence rectangle (x, y, w, h) px lies inside a ``width`` x ``height``
-    image; else why not, with the fix. The one rule every method and the pipeline apply."""
-    x, y, w, h = (int(v) for v in rect)
-    if x >= 0 and y >= 0 and w >= 1 and h >= 1 and x + w <= width and y + h <= height:
-        return None
-    return (
-        f"the confidence rectangle [x, y, w, h] = [{x}, {y}, {w}, {h}] is not inside the "
-        f"{width}x{height} image (needs x, y >= 0, w, h >= 1, x+w <= {width} and "
-        f"y+h <= {height}); fix confidence_rect in the rig or pass --confidence-rect X,Y,W,H"
-    )
 
 
 def _check_segmentation(seg: SegmentationParams, source: str) -> None:

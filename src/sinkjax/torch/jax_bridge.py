@@ -1,10 +1,11 @@
 """The JAX half of the PyTorch bridge: the soft estimator driven by a mask someone else computed.
 
-:func:`sinkjax.soft.estimator.measure` segments the image itself (HSI thresholds). A learned segmenter (a
-torch network, say) supplies its own soft mask instead, through
-:func:`sinkjax.soft.estimator.measure_from_mask` (everything after the segmentation step; ``measure`` is
-``measure_from_mask(image, wheel_mask(image, seg, rect))``). No torch here: :mod:`sinkjax.torch`
-turns these batched, jitted functions into a ``torch.autograd.Function``.
+:func:`sinkjax.soft.estimator.measure` segments the image itself (HSI thresholds). A learned
+segmenter (a torch network, say) supplies its own soft mask instead, through
+:func:`sinkjax.soft.estimator.measure_from_mask` (everything after the segmentation step;
+``measure`` is ``measure_from_mask(image, wheel_mask(image, seg, rect))``). No torch here:
+:mod:`sinkjax.torch.bridge` turns these batched, jitted functions into
+``torch.autograd.Function`` s.
 
 Batched functions take torch's layout, images ``(B, 3, H, W)`` and masks ``(B, 1, H, W)``, so the
 tensors can cross by DLPack without a copy; the transpose to channel-last happens inside XLA.
@@ -26,7 +27,6 @@ from ..rig import SEG_FIELDS, SegmentationParams
 from ..soft.estimator import SoftEstimate, measure_from_mask
 from ..soft.segmentation import soft_open, wheel_mask
 from ..soft.uncertainty import UncertaintyModel
-from ..status import Status
 
 VALUE_NAMES = (
     "sinkage_mm",
@@ -36,7 +36,6 @@ VALUE_NAMES = (
     "theta1_std_deg",
     "theta2_std_deg",
 )
-FIT_FAILED = Status.FIT_FAILED.code
 
 
 def estimate_values(est: SoftEstimate) -> Float[Array, " 6"]:
