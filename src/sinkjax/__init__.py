@@ -1,12 +1,14 @@
 """sinkjax: wheel sinkage z0 and entry/exit angles from images, with honest uncertainty.
 
-The pipeline, one private module per stage (the paper's "Processes of Sinkage Detection"):
-``_colour`` (RGB -> HSI) -> ``_segmentation`` (soft H/S masks) -> ``_outline`` (sub-pixel wheel
-outline) -> ``_hough`` (rim circle start) -> ``_model`` (circle + equivalent line + ends) ->
-``_fit`` (one optimistix solve) -> ``_uncertainty`` (delta method) -> ``_calibration``
-(gradient tuning of the thresholds); ``_geometry`` holds Eqs. 1-3, ``_classic`` the paper's
-OpenCV pipeline, ``_synth`` the renderer with exact truth, and ``_io``/``_pipeline``/``_cli``
-the command line. The optional ``sinkjax.torch`` holds the PyTorch/kornia side.
+The public API is flat, here; the implementation is in sub-packages that follow the paper's
+"Processes of Sinkage Detection": ``soft/`` (colour -> segmentation -> outline -> hough -> model
+-> fit -> uncertainty, then ``estimator``), ``classic/`` (the paper's OpenCV pipeline:
+segmentation -> outline -> refine -> estimator), ``calibration/`` (labels -> loss -> optimise),
+``synth/`` (scene -> truth -> layers -> raster -> presets -> recording), and ``app/`` (PATHs ->
+recordings -> frames -> results -> CSV, overlays, plots, the command line). ``geometry`` holds
+Eqs. 1-3, ``rig`` the rig file, ``status`` and ``result`` what every estimator reports, and
+``metrics`` the one definition of every error statistic. ``sinkjax.torch`` (PyTorch/kornia) and
+``sinkjax.review`` (the web page) are optional extras. The contract is docs/conventions.md.
 """
 
 from . import metrics as metrics
