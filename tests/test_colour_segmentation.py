@@ -107,6 +107,29 @@ def test_soft_mask_gradients_finite() -> None:
     assert abs(float(g.p_a_sat)) > 0
 
 
+def test_traced_rect_equals_sliced_rect_with_one_trace() -> None:
+    # Hues on both sides of 0/360, so a plain (non-circular) mean would be far off.
+    rng = np.random.default_rng(8)
+    img = np.clip(rng.uniform(size=(20, 30, 3)), 0, 1)
+    img[3:15, 4:25] = np.clip(np.array([0.8, 0.12, 0.14]) + rng.normal(0, 0.05, (12, 21, 3)), 0, 1)
+    h, s, _ = rgb_to_hsi(jnp.asarray(img))
+    traces = []
+
+    @jax.jit
+    def traced(rect):
+        traces.append(1)
+        return confidence_means(h, s, rect)
+
+    for rect in [(4, 3, 21, 12), (0, 0, 30, 20), (10, 5, 1, 1), (29, 19, 1, 1)]:
+        want = confidence_means(h, s, rect)
+        got = traced(jnp.asarray(rect, jnp.int32))
+        h_rad = np.radians(np.asarray(h)[rect[1] : rect[1] + rect[3], rect[0] : rect[0] + rect[2]])
+        ref = math.degrees(math.atan2(np.sin(h_rad).mean(), np.cos(h_rad).mean())) % 360.0
+        assert float(want[0]) == pytest.approx(ref, abs=1e-9)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-9, atol=1e-9)
+    assert len(traces) == 1
+
+
 def test_confidence_rect_off_image_raises() -> None:
     z = jnp.zeros((10, 10))
     with pytest.raises(ValueError, match="off the 10x10 image"):

@@ -84,6 +84,41 @@ def test_jit_equals_eager_and_vmap_equals_loop() -> None:
             )
 
 
+def test_one_compile_serves_every_rig_of_a_size() -> None:
+    """A second rig (other rectangle, radius, travel) of the same image size compiles nothing,
+    and the traced rig gives the static-argument path's numbers."""
+    import sinkjax.soft.estimator as E
+
+    images, _, rig = frames("clean", n=2)
+    fn = E._measure_batch if E._use_vmap() else E._measure_one
+    before = fn._cache_size()
+    rows = estimate_batch(images, rig, ["a", "b"])
+    compiled = fn._cache_size()
+    x, y, w, h = rig.confidence_rect
+    other = Rig(
+        wheel_radius_mm=2.0 * rig.wheel_radius_mm,
+        confidence_rect=(x + 1, y + 2, w - 2, h - 2),
+        travel="left" if rig.travel == "right" else "right",
+        segmentation=rig.segmentation,
+    )
+    estimate_batch(images, other, ["a", "b"])
+    assert compiled - before <= 1 and compiled >= 1
+    assert fn._cache_size() == compiled
+    kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
+    n_ok = 0
+    for image, row in zip(images, rows, strict=True):
+        ref = _jit_measure(jnp.asarray(image, jnp.float64) / 255.0, rig.segmentation, **kw)
+        assert row.status == Status.from_code(int(ref.status))
+        if row.status != "ok":
+            continue
+        n_ok += 1
+        want = [ref.sinkage_mm, np.degrees(ref.theta1_rad), np.degrees(ref.theta2_rad)]
+        got = [row.sinkage_mm, row.theta1_deg, row.theta2_deg]
+        np.testing.assert_allclose(got, np.asarray(want, float), rtol=1e-6)
+        np.testing.assert_allclose(row.sinkage_std_mm, float(ref.sinkage_std_mm), rtol=1e-6)
+    assert n_ok >= 1
+
+
 def test_gradients_match_finite_differences() -> None:
     images, truths, rig = frames("full", n=3)
     i = next(j for j, t in enumerate(truths) if t.contact and t.sinkage_mm > 8)

@@ -31,10 +31,20 @@ def rgb_to_hsi(
     return h, s, total / 3.0
 
 
-def circular_mean_deg(angles_deg: Float[Array, "*n"]) -> Float[Array, ""]:
-    """Mean direction of angles in degrees, in [0, 360). Zero for a perfectly balanced set."""
+def circular_mean_deg(
+    angles_deg: Float[Array, "*n"], weight: Float[Array, "*n"] | None = None
+) -> Float[Array, ""]:
+    """Mean direction of angles in degrees, in [0, 360). Zero for a perfectly balanced set.
+
+    ``weight`` (same shape, >= 0): a weighted mean direction, e.g. a 0/1 mask of the pixels.
+    """
     rad = jnp.radians(angles_deg)
-    c, s = jnp.mean(jnp.cos(rad)), jnp.mean(jnp.sin(rad))
+    if weight is None:
+        c, s = jnp.mean(jnp.cos(rad)), jnp.mean(jnp.sin(rad))
+    else:
+        # Normalising is unnecessary for a direction, but keeps `flat` on the same scale.
+        total = jnp.maximum(jnp.sum(weight), 1.0)
+        c, s = jnp.sum(weight * jnp.cos(rad)) / total, jnp.sum(weight * jnp.sin(rad)) / total
     flat = c * c + s * s <= _EPS
     m = jnp.degrees(jnp.arctan2(jnp.where(flat, 0.0, s), jnp.where(flat, 1.0, c)))
     return jnp.where(flat, 0.0, jnp.mod(m, 360.0))

@@ -7,8 +7,6 @@ NumPy-facing wrapper the pipeline and CLI use; it turns each frame into a result
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,7 +21,7 @@ from .fit import build_evidence, fit
 from .hough import hough_rim
 from .model import end_point, measurements
 from .outline import extract_outline, refine_outline
-from .segmentation import soft_open, wheel_mask
+from .segmentation import Rect, soft_open, wheel_mask
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
 # A rim must show edge evidence along at least this fraction of its circumference.
@@ -59,16 +57,19 @@ def measure(
     image: Float[Array, "H W 3"],
     seg: SegmentationParams,
     *,
-    rect: tuple[int, int, int, int],
-    travel: str = "right",
-    wheel_radius_mm: float = 1.0,
+    rect: Rect,
+    travel: str | Float[Array, ""] = "right",
+    wheel_radius_mm: float | Float[Array, ""] = 1.0,
     uncertainty: UncertaintyModel | None = None,
     open_radius_px: int = 0,
 ) -> SoftEstimate:
-    """The soft method on one image in [0, 1]. Keyword arguments are static.
+    """The soft method on one image in [0, 1].
 
     ``image`` is (H, W, 3) RGB in [0, 1]; ``rect`` the confidence rectangle (x, y, w, h) in px;
-    ``wheel_radius_mm`` the rim's physical radius R (sinkage is reported as z0 * R / r).
+    ``travel`` "right"/"left" or its sign (+1.0/-1.0); ``wheel_radius_mm`` the rim's physical
+    radius R (sinkage is reported as z0 * R / r). Python values are static under ``jax.jit``;
+    arrays (``rect`` an int array of 4, see :class:`RigArrays`) are traced, so one compiled
+    function serves every rig of an image size. ``open_radius_px`` is always static.
     ``open_radius_px`` > 0 adds a grey-level opening of the mask (the paper's erosion/dilation
     as a differentiable min/max filter); by default only the outline's smoothing cleans the mask,
     which ``experiments/ablation_cleanup.py`` shows is enough.
@@ -86,15 +87,15 @@ def measure_from_mask(
     image: Float[Array, "H W 3"],
     mask: Float[Array, "H W"],
     *,
-    travel: str = "right",
-    wheel_radius_mm: float = 1.0,
+    travel: str | Float[Array, ""] = "right",
+    wheel_radius_mm: float | Float[Array, ""] = 1.0,
     uncertainty: UncertaintyModel | None = None,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
     ``measure`` is ``measure_from_mask(image, wheel_mask(image, seg, rect))``; a learned
     segmenter (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
-    outline is located on its colours. Keyword arguments are static.
+    outline is located on its colours. Keyword arguments as for :func:`measure`.
     Raises ValueError if the shapes disagree.
     """
     if image.ndim != 3 or image.shape[-1] != 3 or mask.shape != image.shape[:2]:
@@ -106,7 +107,8 @@ def measure_from_mask(
     outline = refine_outline(image, extract_outline(mask))
     # The starting circle is a discrete choice: no gradient flows through it.
     circle = jax.lax.stop_gradient(hough_rim(outline, height, width))
-    ev = build_evidence(outline, circle, travel_sign(travel))
+    sign = travel_sign(travel) if isinstance(travel, str) else travel
+    ev = build_evidence(outline, circle, sign)
     res = fit(ev)
     p = res.params
     cov = covariance(p, ev)
@@ -139,43 +141,60 @@ def measure_from_mask(
     )
 
 
-def _measure_u8(
-    image_u8: Array,
-    seg: SegmentationParams,
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    uncertainty: UncertaintyModel | None = None,
-) -> SoftEstimate:
+class RigArrays(eqx.Module):
+    """A rig's numbers as arrays: traced under ``jax.jit``, so one compiled function serves
+    every rig of an image size (a new rig costs no compile). Built by :func:`rig_arrays`."""
+
+    rect_px: Int[Array, " 4"]  # the confidence rectangle x, y, w, h
+    travel_sign: Float[Array, ""]  # +1.0 travel right, -1.0 left
+    wheel_radius_mm: Float[Array, ""]
+    uncertainty: UncertaintyModel  # its leaves as arrays
+
+
+def rig_arrays(rig: Rig, uncertainty: UncertaintyModel | None = None) -> RigArrays:
+    """``rig`` (and the uncertainty model, default :class:`UncertaintyModel`) as arrays of fixed
+    dtypes, so that every rig gives the same abstract signature."""
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+    model = UncertaintyModel() if uncertainty is None else uncertainty
+    return RigArrays(
+        rect_px=jnp.asarray(rig.confidence_rect, jnp.int32),
+        travel_sign=jnp.asarray(travel_sign(rig.travel), dtype),
+        wheel_radius_mm=jnp.asarray(rig.wheel_radius_mm, dtype),
+        uncertainty=jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), model),
+    )
+
+
+def _measure_u8(image_u8: Array, seg: SegmentationParams, rig: RigArrays) -> SoftEstimate:
     # The default float: float32, or float64 when jax_enable_x64 is on (one dtype throughout,
     # which the solver requires).
     image = image_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
     return measure(
         image,
         seg,
-        rect=rect,
-        travel=travel,
-        wheel_radius_mm=wheel_radius_mm,
-        uncertainty=uncertainty,
+        rect=rig.rect_px,
+        travel=rig.travel_sign,
+        wheel_radius_mm=rig.wheel_radius_mm,
+        uncertainty=rig.uncertainty,
     )
 
 
-_STATIC = ("rect", "travel", "wheel_radius_mm", "uncertainty")
-_measure_one = jax.jit(_measure_u8, static_argnames=_STATIC)
+# No static arguments: these compile once per image size (and batch size), whatever the rig.
+_measure_one = jax.jit(_measure_u8)
+_measure_batch = jax.jit(jax.vmap(_measure_u8, in_axes=(0, None, None)))
+
+# Accelerator batches are padded to one of these sizes (then to a multiple of the largest), so
+# that a run compiles a handful of shapes, not one per batch length.
+BATCH_SIZES = (1, 8, 32, 128)
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC)
-def _measure_batch(
-    images_u8: Array,
-    seg: SegmentationParams,
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    uncertainty: UncertaintyModel | None = None,
-) -> SoftEstimate:
-    return jax.vmap(lambda im: _measure_u8(im, seg, rect, travel, wheel_radius_mm, uncertainty))(
-        images_u8
-    )
+def padded_size(n: int) -> int:
+    """The batch size ``n`` frames are padded to: the first of :data:`BATCH_SIZES` that holds
+    them, else a multiple of the largest."""
+    for size in BATCH_SIZES:
+        if n <= size:
+            return size
+    top = BATCH_SIZES[-1]
+    return -(-n // top) * top
 
 
 def _use_vmap() -> bool:
@@ -196,7 +215,8 @@ def estimate_batch(
     """Soft estimates for frames of one size (uint8 RGB (H, W, 3) each), one row per frame.
 
     ``pad_to`` pads the batch (repeating a frame) so that every call has the same shape and the
-    compiled function is reused; by default batches are padded to a power of two.
+    compiled function is reused; by default to :func:`padded_size`. The rig's numbers are
+    traced (:class:`RigArrays`): a new rig of a size already seen compiles nothing.
     """
     if len(images) != len(names):
         raise ValueError(f"got {len(images)} images but {len(names)} names")
@@ -210,13 +230,17 @@ def estimate_batch(
     if problem is not None:
         return [failed(n, Status.BAD_RECT, problem) for n in names]
     n = len(images)
-    args = (rig.segmentation, rig.confidence_rect, rig.travel, float(rig.wheel_radius_mm))
+    # Fixed dtypes (not weak ones) for the thresholds too: a rig loaded from a file and one
+    # built in Python must hit the same compiled function.
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+    seg = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), rig.segmentation)
+    args = (seg, rig_arrays(rig, uncertainty))
     if _use_vmap():
-        size = pad_to or 1 << (n - 1).bit_length()
+        size = max(pad_to or padded_size(n), n)
         batch = np.stack(images + [images[0]] * (size - n))
-        out = _measure_batch(jnp.asarray(batch), *args, uncertainty)
+        out = _measure_batch(jnp.asarray(batch), *args)
     else:
-        each = [_measure_one(jnp.asarray(im), *args, uncertainty) for im in images]
+        each = [_measure_one(jnp.asarray(im), *args) for im in images]
         out = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *each)
     out = jax.tree_util.tree_map(np.asarray, out)
     return [frame_result(out, i, names[i], rig) for i in range(n)]

@@ -9,27 +9,41 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ..rig import HUE_SCALE_DEG, SegmentationParams
 from .colour import circular_mean_deg, rgb_to_hsi, wrap_deg
 
+# The confidence rectangle (x, y, w, h) in px: static ints, or a traced array (see below).
+Rect = tuple[int, int, int, int] | Int[Array, " 4"]
+
 
 def confidence_means(
-    h_deg: Float[Array, "H W"], s: Float[Array, "H W"], rect: tuple[int, int, int, int]
+    h_deg: Float[Array, "H W"], s: Float[Array, "H W"], rect: Rect
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Eqs. 4-5: H_w (circular mean, degrees) and S_w over the confidence rectangle (x, y, w, h).
 
-    ``rect`` is static. Raises ValueError if it does not lie inside the image.
+    ``rect`` is a tuple of ints (static: the rectangle is sliced out; raises ValueError if it
+    does not lie inside the image) or an int array of 4 (traced: a masked mean over the image,
+    so one compiled function serves every rectangle; the caller checks it with
+    :func:`sinkjax.rig.rect_problem`).
     """
-    x, y, w, h = rect
     height, width = h_deg.shape[-2:]
-    if x < 0 or y < 0 or x + w > width or y + h > height:
-        raise ValueError(
-            f"confidence rectangle {list(rect)} is off the {width}x{height} image; "
-            "fix confidence_rect in the rig file or --confidence-rect"
-        )
-    return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
+    if isinstance(rect, tuple | list):
+        x, y, w, h = rect
+        if x < 0 or y < 0 or x + w > width or y + h > height:
+            raise ValueError(
+                f"confidence rectangle {list(rect)} is off the {width}x{height} image; "
+                "fix confidence_rect in the rig file or --confidence-rect"
+            )
+        return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
+    x, y, w, h = (rect[i] for i in range(4))
+    cols = jnp.arange(width)
+    rows = jnp.arange(height)
+    inside = ((rows >= y) & (rows < y + h))[:, None] & ((cols >= x) & (cols < x + w))[None, :]
+    weight = inside.astype(s.dtype)
+    count = jnp.maximum(jnp.sum(weight), 1.0)
+    return circular_mean_deg(h_deg, weight), jnp.sum(weight * s) / count
 
 
 def band_limits(
@@ -62,7 +76,7 @@ def soft_mask(
 
 
 def wheel_mask(
-    image: Float[Array, "H W 3"], seg: SegmentationParams, rect: tuple[int, int, int, int]
+    image: Float[Array, "H W 3"], seg: SegmentationParams, rect: Rect
 ) -> Float[Array, "H W"]:
     """Image in [0, 1] -> soft wheel mask, the paper's steps (2)-(3) made differentiable."""
     h, s, _ = rgb_to_hsi(image)
