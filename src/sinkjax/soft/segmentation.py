@@ -37,10 +37,10 @@ def confidence_means(
                 "fix confidence_rect in the rig file or --confidence-rect"
             )
         return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
-    x, y, w, h = (rect[i] for i in range(4))
+    x0, y0, w0, h0 = (rect[i] for i in range(4))
     cols = jnp.arange(width)
     rows = jnp.arange(height)
-    inside = ((rows >= y) & (rows < y + h))[:, None] & ((cols >= x) & (cols < x + w))[None, :]
+    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
     weight = inside.astype(s.dtype)
     count = jnp.maximum(jnp.sum(weight), 1.0)
     return circular_mean_deg(h_deg, weight), jnp.sum(weight * s) / count

@@ -71,7 +71,7 @@ def covariance(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, "9 9"]:
 def measurement_std(
     p: Float[Array, " 9"],
     cov: Float[Array, "9 9"],
-    wheel_radius_mm: float | None = None,
+    wheel_radius_mm: float | Float[Array, ""] | None = None,
     model: UncertaintyModel | None = None,
 ) -> Float[Array, " 3"]:
     """One-sigma (z0 px or mm, theta1 rad, theta2 rad): scaled delta method plus floors."""
