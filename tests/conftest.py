@@ -3,6 +3,8 @@
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+# The command line keeps compiled code in ~/.cache; tests that want it name a temporary folder.
+os.environ.setdefault("SINKJAX_CACHE_DIR", "off")
 
 import jax
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .cli_base import EXIT_OK, UsageError
+from .compile_cache import cache_dir, enable_compile_cache
 from .frames import FrameSelection
 from .pipeline import MethodUnavailable, load_method
 from .resume import ResumeError
@@ -54,11 +55,28 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
         help="frames measured together (soft method only; default: 8)",
     )
     _add_long_run_options(p)
+    add_cache_option(p)
+
+
+def add_cache_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="do not keep the soft method's compiled code on disk (default: kept in "
+        "$SINKJAX_CACHE_DIR, else ~/.cache/sinkjax/jax, so the next run starts in a second; "
+        "SINKJAX_CACHE_DIR=off also turns it off)",
+    )
+
+
+def setup_compile_cache(args: argparse.Namespace) -> None:
+    """JAX's persistent compilation cache for this command (see :mod:`.compile_cache`)."""
+    enable_compile_cache(cache_dir(enabled=not args.no_compile_cache))
 
 
 def _run_estimate(args: argparse.Namespace) -> int:
     if args.batch_size < 1:
         raise UsageError(f"--batch-size must be at least 1, got {args.batch_size}")
+    setup_compile_cache(args)
     select, smoothing = _long_run_options(args)
     rect = parse_rect(args.confidence_rect) if args.confidence_rect is not None else None
     overrides = RigOverrides(args.wheel_radius_mm, rect, args.travel)

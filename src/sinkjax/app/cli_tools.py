@@ -6,7 +6,12 @@ import argparse
 from types import ModuleType
 
 from .cli_base import EXIT_OK, UsageError
-from .cli_estimate import _add_smoothing_options, _smoothing_options
+from .cli_estimate import (
+    _add_smoothing_options,
+    _smoothing_options,
+    add_cache_option,
+    setup_compile_cache,
+)
 from .pipeline import MethodUnavailable, load_method
 
 # --------------------------------------------------------------------------------------------
@@ -68,6 +73,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
         "--out", default="sinkjax-demo", metavar="DIR", help="output folder (sinkjax-demo)"
     )
     p.add_argument("--method", choices=("soft", "classic"), default="soft", help="method (soft)")
+    add_cache_option(p)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -78,6 +84,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         load_method(args.method)
     except MethodUnavailable as e:
         raise UsageError(str(e)) from e
+    setup_compile_cache(args)
     report = run_demo(args.out, method=args.method, progress=True)
     print(report.summary.line())
     print()

@@ -14,6 +14,7 @@ import cv2
 from ..result import FrameResult
 from ..rig import Rig
 from ..status import Status
+from .compile_cache import CompileClock
 from .frames import ALL_FRAMES, Frame, FrameSelection, count_frames, frame_rate
 from .overlay import OverlayVideoWriter, OverlayWriter
 from .pipeline import BatchMethod, iter_recordings
@@ -35,6 +36,9 @@ class RunSummary:
     seconds: float = 0.0
     n_resumed: int = 0  # rows an earlier run had written (``resume``)
     smoothed: bool = False
+    # Part of ``seconds`` spent compiling (tracing, lowering, compiling or loading from the
+    # persistent cache), summed over the processes of a parallel run.
+    compile_seconds: float = 0.0
 
     @property
     def n_frames(self) -> int:
@@ -60,7 +64,10 @@ class RunSummary:
         text = f"{self.n_frames} frames: {', '.join(measured)}"
         text += "; failed: " + (", ".join(f"{n} {s}" for s, n in failures) if failures else "0")
         if self.seconds > 0 and self.n_frames:
-            text += f" ({self.n_frames / self.seconds:.2f} frames/s)"
+            text += f" ({self.n_frames / self.seconds:.2f} frames/s"
+            if self.compile_seconds > 0:
+                text += f"; {self.seconds:.1f} s, of which compiling {self.compile_seconds:.1f} s"
+            text += ")"
         if self.n_resumed:
             text += f"; {self.n_resumed} rows kept from the earlier run"
         if self.smoothed:
@@ -135,10 +142,14 @@ def estimate_to_csv(
         desc=method if isinstance(method, str) else None,
         disable=None if progress else True,
     )
+    clock = CompileClock()
     try:
-        with open(
-            out, "w" if fresh else "a", newline="", encoding="utf-8", errors="surrogateescape"
-        ) as stream:
+        with (
+            open(
+                out, "w" if fresh else "a", newline="", encoding="utf-8", errors="surrogateescape"
+            ) as stream,
+            clock,
+        ):
             writer = ResultsWriter(stream, header=fresh)
             for rec, frame, result in pairs:
                 writer.write(result)
@@ -151,6 +162,7 @@ def estimate_to_csv(
         if video is not None:
             video.close()
     summary.seconds = time.perf_counter() - start
+    summary.compile_seconds = clock.seconds
     if smoothing is not None:
         smooth_csv(out, out, smoothing)
         summary.smoothed = True

@@ -50,6 +50,9 @@ class SoftEstimate(eqx.Module):
     boundary_weight: Float[Array, " K"]
     boundary_x_px: Float[Array, " K"]
     boundary_y_px: Float[Array, " K"]
+    # A and B in the wheel frame (u, v) px: computed here so that turning a frame into a row
+    # needs no JAX call outside the compiled function.
+    ends_uv_px: Float[Array, "2 2"]
 
 
 def measure(
@@ -146,6 +149,7 @@ def measure_from_mask(
         boundary_weight=ev.w_line,
         boundary_x_px=ev.x_px,
         boundary_y_px=ev.y_px,
+        ends_uv_px=jnp.stack([end_point(p[5], p[6], p[2], 1.0), end_point(p[7], p[8], p[2], -1.0)]),
     )
 
 
@@ -249,7 +253,8 @@ def estimate_batch(
         out = _measure_batch(jnp.asarray(batch), *args)
     else:
         each = [_measure_one(jnp.asarray(im), *args) for im in images]
-        out = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *each)
+        # NumPy, not jnp.stack: eager JAX ops would each compile once per process.
+        out = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *each)
     out = jax.tree_util.tree_map(np.asarray, out)
     return [frame_result(out, i, names[i], rig) for i in range(n)]
 
@@ -272,8 +277,7 @@ def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig) -> FrameResult:
             message=Status.FIT_FAILED.message,
         )
     sign = travel_sign(rig.travel)
-    a = np.asarray(end_point(p[5], p[6], p[2], 1.0))
-    b = np.asarray(end_point(p[7], p[8], p[2], -1.0))
+    a, b = out.ends_uv_px[i].astype(float)
     ax, ay = (float(t) for t in from_wheel_frame(a[0], a[1], cx, cy, rig.travel))
     bx, by = (float(t) for t in from_wheel_frame(b[0], b[1], cx, cy, rig.travel))
     keep = out.boundary_weight[i] > 0.25
