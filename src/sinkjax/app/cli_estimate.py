@@ -48,6 +48,12 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--overlay", metavar="DIR", help="also write one overlay PNG per frame here")
     p.add_argument(
+        "--summary",
+        metavar="CSV",
+        help="also write a campaign summary: one row per recording (frames, ok, failures by "
+        "status, median and range of z0, θ1, θ2, median σ)",
+    )
+    p.add_argument(
         "--batch-size",
         type=int,
         default=8,
@@ -96,6 +102,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
             select=select,
             resume=args.resume,
             smoothing=smoothing,
+            summary_csv=args.summary,
             progress=True,
         )
     except (ResumeError, ValueError) as e:
@@ -105,6 +112,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
     if len(summary.recordings) > 1:
         print("\n".join(["rigs:", *summary.rig_lines()]))
     print(summary.line())
+    if summary.summary_csv is not None:
+        print(f"summary of {len(summary.recordings)} recording(s) -> {summary.summary_csv}")
     if summary.n_frames == 0:
         if summary.n_resumed:
             print(f"nothing left to measure: {args.out} already has every selected frame")

@@ -136,18 +136,28 @@ def _add_plot(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also draw the smoothed series (its columns, or smoothed here with the options)",
     )
+    p.add_argument(
+        "--per-recording",
+        action="store_true",
+        help="a campaign's view instead: z0, θ1, θ2 over time, one line per recording",
+    )
     _add_smoothing_options(p)
 
 
 def _run_plot(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .plots import plot_series
+    from .plots import plot_recordings, plot_series
 
     options = _smoothing_options(args)
     out = args.out or str(Path(args.results).with_suffix(".png"))
+    if args.per_recording and args.smoothed:
+        raise UsageError("--per-recording draws no smoothed series; drop --smoothed")
     try:
-        written = plot_series(args.results, out, smoothed=args.smoothed, options=options)
+        if args.per_recording:
+            written = plot_recordings(args.results, out)
+        else:
+            written = plot_series(args.results, out, smoothed=args.smoothed, options=options)
     except ValueError as e:
         raise UsageError(str(e)) from e
     except OSError as e:

@@ -250,3 +250,54 @@ def plot_series(
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
     return out
+
+
+def recording_of(image: str) -> tuple[str, float | None]:
+    """A results row's recording and its place in it: a video frame's row (``VIDEO#NNNNNN``)
+    is the video and the frame number; an image's row is its folder (frame number None)."""
+    head, sep, tail = image.rpartition("#")
+    if sep and tail.isdigit():
+        return head, float(tail)
+    return str(Path(image).parent), None
+
+
+def plot_recordings(
+    results_csv: str | Path, out_png: str | Path, *, title: str | None = None
+) -> Path:
+    """z0 (mm), θ1 and θ2 (deg) over time, one line per recording, as a PNG (a campaign's view).
+
+    Time is the video frame number, or the image's place in its folder's rows. Frames without
+    an estimate are gaps. Raises ValueError for a file that is not a results CSV.
+    """
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    from .smoothing import read_results
+
+    _, rows = read_results(results_csv)
+    series: dict[str, list[tuple[float, dict[str, str]]]] = {}
+    for row in rows:
+        name, frame = recording_of(row["image"])
+        group = series.setdefault(name, [])
+        group.append((float(len(group)) if frame is None else frame, row))
+    fig = Figure(figsize=(11, 8.5), layout="constrained")
+    axes = fig.subplots(3, 1, sharex=True)
+    marker = "o" if len(rows) <= 400 else None
+    for name, points in series.items():
+        xs = np.array([x for x, _ in points])
+        status = [r["status"] for _, r in points]
+        for ax, (col, _, _, label, unit) in zip(axes, QUANTITIES, strict=True):
+            y = metrics.measured_values([number(r.get(col)) for _, r in points], status)
+            ax.plot(xs, y, marker=marker, ms=3, lw=1, label=Path(name).name or name)
+            ax.set_ylabel(f"{label} [{unit}]")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    if len(series) <= 20:
+        axes[0].legend(loc="upper right", fontsize=7, ncols=min(len(series), 5))
+    axes[-1].set_xlabel("frame (video frame number, or image's place in its recording)")
+    heading = title or f"sinkjax results: {Path(results_csv).name}"
+    fig.suptitle(f"{heading} ({len(series)} recordings, {len(rows)} frames)")
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    return out

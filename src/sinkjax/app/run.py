@@ -22,6 +22,7 @@ from .results import ResultsWriter
 from .resume import prepare_resume
 from .smoothing import SmoothingOptions, smooth_csv
 from .sources import Inputs, Recording, expand_paths, open_recordings, with_rig
+from .summary import write_summary
 
 log = logging.getLogger("sinkjax")
 
@@ -39,6 +40,7 @@ class RunSummary:
     # Part of ``seconds`` spent compiling (tracing, lowering, compiling or loading from the
     # persistent cache), summed over the processes of a parallel run.
     compile_seconds: float = 0.0
+    summary_csv: Path | None = None  # the campaign summary, if one was asked for
 
     @property
     def n_frames(self) -> int:
@@ -88,6 +90,7 @@ def estimate_to_csv(
     select: FrameSelection = ALL_FRAMES,
     resume: bool = False,
     smoothing: SmoothingOptions | None = None,
+    summary_csv: str | Path | None = None,
     progress: bool = False,
 ) -> RunSummary:
     """Measure every frame of ``inputs`` and write the results CSV, one flushed row per frame.
@@ -99,8 +102,10 @@ def estimate_to_csv(
     annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
     :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
     the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
-    smoothed columns (:mod:`sinkjax.app.smoothing`). ``progress``: a progress bar (frames/s, ETA)
-    on stderr when it is a terminal. Rows already written stay if the run is interrupted.
+    smoothed columns (:mod:`sinkjax.app.smoothing`). ``summary_csv``: when the run completes,
+    write the campaign summary there (:mod:`sinkjax.app.summary`). ``progress``: a progress
+    bar (frames/s, ETA) on stderr when it is a terminal. Rows already written stay if the run
+    is interrupted.
     Raises InputError / ValueError / ResumeError / MethodUnavailable / OSError before the first
     frame for unusable arguments.
     """
@@ -114,6 +119,10 @@ def estimate_to_csv(
         inputs = open_recordings(paths, rig_path=rig_path)
     out = Path(out_csv)
     check_output(out, inputs)
+    if summary_csv is not None:
+        check_output(Path(summary_csv), inputs)
+        if Path(summary_csv).resolve() == out.resolve():
+            raise ValueError(f"--summary {str(summary_csv)!r} is the results CSV; choose another")
     done: set[str] = set()  # filled below; the frames are read lazily, after that
     pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select, skip=done)
     video = None
@@ -166,6 +175,8 @@ def estimate_to_csv(
     if smoothing is not None:
         smooth_csv(out, out, smoothing)
         summary.smoothed = True
+    if summary_csv is not None:
+        summary.summary_csv = write_summary(out, inputs, summary_csv)
     return summary
 
 
