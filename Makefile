@@ -16,7 +16,7 @@ $(VENV)/.core: $(PY) pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.dev: $(VENV)/.core
-	$(PIP) -e ".[torch,dev,review]"
+	$(PIP) -e ".[torch,dev,review,parallel]"
 	touch $@
 
 # The review page's browser tests drive Debian's chromium. Installed here when missing and we

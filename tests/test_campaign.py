@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 from sinkjax.app.compile_cache import CompileClock, cache_dir
+from sinkjax.app.parallel import ParallelOptions, WorkerCannotRead, plan_tasks
 from sinkjax.app.plots import plot_recordings, recording_of
 from sinkjax.app.results import COLUMNS
 from sinkjax.app.run import estimate_to_csv
@@ -140,3 +143,121 @@ def test_source_of_rows_and_per_recording_plot(tmp_path) -> None:
         csv.writer(f).writerows([COLUMNS, *rows])
     png = plot_recordings(tmp_path / "r.csv", tmp_path / "p.png")
     assert cv2.imread(str(png)).shape[0] > 400
+
+
+# --- parallel runs on Dask -----------------------------------------------------------------------
+
+try:
+    import dask.distributed as distributed
+except ImportError:  # `make test` installs it; elsewhere these tests say how
+    distributed = None
+needs_dask = pytest.mark.skipif(distributed is None, reason="pip install 'sinkjax[parallel]'")
+
+
+class DieOnce:
+    """The fake method, except that the first worker to meet ``victim`` dies (os._exit): the
+    task must be run again elsewhere and no row lost. ``marker`` records that it happened."""
+
+    def __init__(self, marker: Path, victim: str) -> None:
+        self.marker = marker
+        self.victim = victim
+
+    def __call__(self, images, rig, names):
+        if any(n.endswith(self.victim) for n in names) and not self.marker.exists():
+            self.marker.write_text("died")
+            os._exit(1)
+        return _fake_batch(images, rig, names)
+
+
+def _video(path: Path, greys: list[int]) -> None:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 5, (48, 40))
+    for g in greys:
+        writer.write(np.full((40, 48, 3), g, np.uint8))
+    writer.release()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A local Dask cluster of two worker processes, started by the test (``--scheduler``)."""
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0"
+    ) as c:
+        yield c
+
+
+@needs_dask
+def test_scheduler_chunks_resume_and_a_killed_worker(tmp_path, cluster) -> None:
+    import cloudpickle
+
+    # The fakes live in this test module, which the workers cannot import: send them by value.
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    a = tmp_path / "a"
+    a.mkdir()
+    for i, grey in enumerate([10, 20, 60, 30, 40, 70, 80]):
+        _png(a / f"f{i}.png", grey)
+    (a / "f7.png").write_bytes(b"broken")
+    _video(tmp_path / "v.mp4", [90, 100, 110, 120, 130])
+    rig = Rig(wheel_radius_mm=100.0, confidence_rect=(2, 2, 4, 4))
+    inputs = with_rig(expand_paths([a, tmp_path / "v.mp4"]), rig)
+    serial = tmp_path / "serial.csv"
+    estimate_to_csv(inputs, serial, method=_fake_batch, batch_size=2)
+    want = serial.read_bytes()
+    assert want.count(b"\n") == 1 + 8 + 5
+
+    options = ParallelOptions(scheduler=cluster.scheduler_address, chunk_frames=2)
+    tasks = plan_tasks(inputs, method=_fake_batch, batch_size=2, chunk_frames=2)
+    assert len(tasks) == 4 + 3  # 8 images in chunks of 2; 5 video frames in chunks of 2
+    marker = tmp_path / "died"
+    out = tmp_path / "parallel.csv"
+    run = estimate_to_csv(
+        inputs, out, method=DieOnce(marker, "a/f2.png"), batch_size=2, parallel=options
+    )
+    assert marker.exists(), "no worker died: the test did not test anything"
+    assert out.read_bytes() == want
+    assert run.n_frames == 13 and run.n_read == 12
+
+    # --resume: the first rows and half a row remain; the rest is measured on the cluster.
+    lines = want.splitlines(keepends=True)
+    out.write_bytes(b"".join(lines[:5]) + lines[5][:7])
+    estimate_to_csv(inputs, out, method=_fake_batch, batch_size=2, parallel=options, resume=True)
+    assert out.read_bytes() == want
+
+
+@needs_dask
+def test_workers_cli_gives_the_serial_csv_with_a_real_method(tmp_path, monkeypatch) -> None:
+    from sinkjax import synth as S
+    from sinkjax.app.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    S.write_recording("r1", n_frames=3, seed=1, width=96, height=72, progress=False)
+    S.write_recording("r2", n_frames=2, seed=2, width=80, height=64, progress=False)
+    args = ["estimate", "r1", "r2", "--method", "classic", "--summary"]
+    assert main([*args, "s_serial.csv", "--out", "serial.csv"]) == 0
+    assert main([*args, "s_par.csv", "--out", "par.csv", "--workers", "2"]) == 0
+    assert Path("par.csv").read_bytes() == Path("serial.csv").read_bytes()
+    assert Path("s_par.csv").read_bytes() == Path("s_serial.csv").read_bytes()
+    assert b"ok" in Path("serial.csv").read_bytes()
+
+
+@needs_dask
+def test_workers_that_cannot_see_the_inputs_say_so(tmp_path, cluster) -> None:
+    d = tmp_path / "gone"
+    d.mkdir()
+    _png(d / "f.png", 10)
+    inputs = with_rig(expand_paths([d]), Rig(wheel_radius_mm=1.0, confidence_rect=(2, 2, 4, 4)))
+    (d / "f.png").unlink()  # listed by the run, then gone before a worker reads it
+    options = ParallelOptions(scheduler=cluster.scheduler_address)
+    with pytest.raises(WorkerCannotRead, match=r"cannot see .*f\.png.*same place"):
+        estimate_to_csv(inputs, tmp_path / "r.csv", method="classic", parallel=options)
+
+
+def test_without_dask_the_message_names_the_extra(tmp_path, monkeypatch, capsys) -> None:
+    from sinkjax.app.cli import main
+
+    monkeypatch.setitem(sys.modules, "dask.distributed", None)  # import fails as if missing
+    _png(tmp_path / "f.png", 10)
+    code = main(["estimate", str(tmp_path / "f.png"), "--workers", "2", "--wheel-radius-mm", "1",
+                 "--confidence-rect", "2,2,4,4", "--out", str(tmp_path / "r.csv")])  # fmt: skip
+    assert code == 2
+    assert "pip install 'sinkjax[parallel]'" in capsys.readouterr().err
+    assert not (tmp_path / "r.csv").exists()

@@ -7,6 +7,7 @@ import argparse
 from .cli_base import EXIT_OK, UsageError
 from .compile_cache import cache_dir, enable_compile_cache
 from .frames import FrameSelection
+from .parallel import ParallelOptions, ParallelUnavailable, WorkerCannotRead, import_distributed
 from .pipeline import MethodUnavailable, load_method
 from .resume import ResumeError
 from .run import estimate_to_csv
@@ -61,6 +62,21 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
         help="frames measured together (soft method only; default: 8)",
     )
     _add_long_run_options(p)
+    g = p.add_argument_group(
+        "parallel runs on Dask (pip install 'sinkjax[parallel]'): the same CSV as a serial run"
+    ).add_mutually_exclusive_group()
+    g.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="measure recordings (and chunks of long ones) in N local worker processes",
+    )
+    g.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="use a running dask.distributed cluster (tcp://host:8786); its workers must see "
+        "the PATHs at the same place (a shared filesystem)",
+    )
     add_cache_option(p)
 
 
@@ -91,6 +107,13 @@ def _run_estimate(args: argparse.Namespace) -> int:
         load_method(args.method)
     except MethodUnavailable as e:
         raise UsageError(str(e)) from e
+    parallel = None
+    if args.workers is not None or args.scheduler is not None:
+        try:
+            import_distributed()
+            parallel = ParallelOptions(workers=args.workers, scheduler=args.scheduler)
+        except (ParallelUnavailable, ValueError) as e:
+            raise UsageError(str(e)) from e
     try:
         summary = estimate_to_csv(
             inputs,
@@ -103,9 +126,10 @@ def _run_estimate(args: argparse.Namespace) -> int:
             resume=args.resume,
             smoothing=smoothing,
             summary_csv=args.summary,
+            parallel=parallel,
             progress=True,
         )
-    except (ResumeError, ValueError) as e:
+    except (ResumeError, ValueError, WorkerCannotRead) as e:
         raise UsageError(str(e)) from e
     except OSError as e:
         raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,7 +18,8 @@ from ..status import Status
 from .compile_cache import CompileClock
 from .frames import ALL_FRAMES, Frame, FrameSelection, count_frames, frame_rate
 from .overlay import OverlayVideoWriter, OverlayWriter
-from .pipeline import BatchMethod, iter_recordings
+from .parallel import ParallelOptions, ParallelRun, plan_tasks
+from .pipeline import BatchMethod, iter_recordings, load_method
 from .results import ResultsWriter
 from .resume import prepare_resume
 from .smoothing import SmoothingOptions, smooth_csv
@@ -91,6 +93,7 @@ def estimate_to_csv(
     resume: bool = False,
     smoothing: SmoothingOptions | None = None,
     summary_csv: str | Path | None = None,
+    parallel: ParallelOptions | None = None,
     progress: bool = False,
 ) -> RunSummary:
     """Measure every frame of ``inputs`` and write the results CSV, one flushed row per frame.
@@ -103,9 +106,11 @@ def estimate_to_csv(
     :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
     the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
     smoothed columns (:mod:`sinkjax.app.smoothing`). ``summary_csv``: when the run completes,
-    write the campaign summary there (:mod:`sinkjax.app.summary`). ``progress``: a progress
-    bar (frames/s, ETA) on stderr when it is a terminal. Rows already written stay if the run
-    is interrupted.
+    write the campaign summary there (:mod:`sinkjax.app.summary`). ``parallel``: measure on a
+    Dask cluster (:mod:`sinkjax.app.parallel`; the same rows, written here in the same order;
+    overlays are written by the workers, ``overlay_video`` needs a serial run). ``progress``:
+    a progress bar (frames/s, ETA) on stderr when it is a terminal. Rows already written stay
+    if the run is interrupted.
     Raises InputError / ValueError / ResumeError / MethodUnavailable / OSError before the first
     frame for unusable arguments.
     """
@@ -123,8 +128,14 @@ def estimate_to_csv(
         check_output(Path(summary_csv), inputs)
         if Path(summary_csv).resolve() == out.resolve():
             raise ValueError(f"--summary {str(summary_csv)!r} is the results CSV; choose another")
+    if parallel is not None and overlay_video is not None:
+        raise ValueError(
+            "--overlay-video is drawn from the frames in this process: drop it, or run without "
+            "--workers/--scheduler"
+        )
+    if parallel is not None and isinstance(method, str):
+        load_method(method)  # an unknown or missing method fails here, not on every worker
     done: set[str] = set()  # filled below; the frames are read lazily, after that
-    pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select, skip=done)
     video = None
     if overlay_video is not None:
         video = OverlayVideoWriter(overlay_video, fps=frame_rate(inputs.sources, select=select))
@@ -152,32 +163,69 @@ def estimate_to_csv(
         disable=None if progress else True,
     )
     clock = CompileClock()
+    runner = ParallelRun(parallel) if parallel is not None else None
     try:
         with (
             open(
                 out, "w" if fresh else "a", newline="", encoding="utf-8", errors="surrogateescape"
             ) as stream,
             clock,
+            runner or contextlib.nullcontext(),
         ):
             writer = ResultsWriter(stream, header=fresh)
-            for rec, frame, result in pairs:
+            rows: Iterator[tuple[Recording, FrameResult, bool, Frame | None]]
+            if runner is None:
+                pairs = iter_recordings(
+                    inputs, method=method, batch_size=batch_size, select=select, skip=done
+                )
+                rows = (
+                    (rec, result, frame.image is not None, frame) for rec, frame, result in pairs
+                )
+            else:
+                rows = _parallel_rows(runner, inputs, method, batch_size, select, done, overlay_dir)
+            for rec, result, was_read, frame in rows:
                 writer.write(result)
                 summary.counts[result.status] += 1
-                summary.n_read += frame.image is not None
-                _write_overlays(rec, frame, result, overlays, video)
+                summary.n_read += was_read
+                if frame is not None:
+                    _write_overlays(rec, frame, result, overlays, video)
                 bar.update(1)
     finally:
         bar.close()
         if video is not None:
             video.close()
     summary.seconds = time.perf_counter() - start
-    summary.compile_seconds = clock.seconds
+    summary.compile_seconds = clock.seconds + (runner.compile_seconds if runner else 0.0)
     if smoothing is not None:
         smooth_csv(out, out, smoothing)
         summary.smoothed = True
     if summary_csv is not None:
         summary.summary_csv = write_summary(out, inputs, summary_csv)
     return summary
+
+
+def _parallel_rows(
+    runner: ParallelRun,
+    inputs: Inputs,
+    method: str | BatchMethod,
+    batch_size: int,
+    select: FrameSelection,
+    done: set[str],
+    overlay_dir: str | Path | None,
+) -> Iterator[tuple[Recording, FrameResult, bool, Frame | None]]:
+    tasks = plan_tasks(
+        inputs,
+        method=method,
+        batch_size=batch_size,
+        select=select,
+        skip=done,
+        chunk_frames=runner.options.chunk_frames,
+        overlay_dir=overlay_dir,
+    )
+    for task, result in runner.results(tasks):
+        rec = inputs.recordings[task.recording]
+        for row, was_read in result.rows:
+            yield rec, row, was_read, None
 
 
 def check_output(out: Path, inputs: Inputs) -> None:
