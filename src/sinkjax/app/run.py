@@ -43,6 +43,7 @@ class RunSummary:
     # persistent cache), summed over the processes of a parallel run.
     compile_seconds: float = 0.0
     summary_csv: Path | None = None  # the campaign summary, if one was asked for
+    workers: bool = False  # measured on a Dask cluster (compile time summed over its workers)
 
     @property
     def n_frames(self) -> int:
@@ -70,7 +71,11 @@ class RunSummary:
         if self.seconds > 0 and self.n_frames:
             text += f" ({self.n_frames / self.seconds:.2f} frames/s"
             if self.compile_seconds > 0:
-                text += f"; {self.seconds:.1f} s, of which compiling {self.compile_seconds:.1f} s"
+                text += f"; {self.seconds:.1f} s, " + (
+                    f"workers compiling {self.compile_seconds:.1f} s in all"
+                    if self.workers
+                    else f"of which compiling {self.compile_seconds:.1f} s"
+                )
             text += ")"
         if self.n_resumed:
             text += f"; {self.n_resumed} rows kept from the earlier run"
@@ -196,6 +201,7 @@ def estimate_to_csv(
             video.close()
     summary.seconds = time.perf_counter() - start
     summary.compile_seconds = clock.seconds + (runner.compile_seconds if runner else 0.0)
+    summary.workers = runner is not None
     if smoothing is not None:
         smooth_csv(out, out, smoothing)
         summary.smoothed = True

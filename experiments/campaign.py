@@ -1,0 +1,285 @@
+"""Campaign timings (issue 13): start-up, many recordings in one command, workers, steady state.
+
+Every run below is the real command line (``python -m sinkjax.app.cli estimate ...``) in a fresh
+process, timed from outside (wall clock, process start to exit), on synthetic recordings written
+by ``sinkjax.synth`` (seeded). Four measurements:
+
+1. Start-up: 8 frames (640x480) of a rig not seen before, of an image size already compiled
+   (the second soft run, persistent compile cache warm), against the classic method on the same
+   8 frames (its second run too).
+2. A campaign: 15 recordings, 4 image sizes, 6 frames each, in one command: soft (cache cold
+   and warm) against classic, and soft with ``--workers 2`` against the serial soft run (the
+   CSVs are compared byte for byte).
+3. Steady state at 640x480 in one process: ms per frame once compiled, soft against classic.
+4. The soft method per stage at 640x480 (HSI, mask, outline, Hough, fit, covariance), each stage
+   jitted on its own and timed on its real inputs.
+
+    PYTHONPATH=src python experiments/campaign.py           # ~5 minutes on 2 CPU cores
+    PYTHONPATH=src python experiments/campaign.py --quick   # fewer frames and recordings
+
+Writes ``experiments/results/campaign.json`` and ``campaign.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).parent / "results"
+SIZES = ((640, 480), (800, 600), (1024, 768), (1280, 720))
+
+
+def cli(args: list[str], cache: Path | str, cwd: Path) -> dict:
+    """One ``sinkjax estimate`` in a fresh process; its wall time and summary line."""
+    env = {**os.environ, "SINKJAX_CACHE_DIR": str(cache)}
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "sinkjax.app.cli", "estimate", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    seconds = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"sinkjax estimate {' '.join(args)} failed:\n{proc.stderr[-2000:]}")
+    line = next(x for x in reversed(proc.stdout.splitlines()) if " frames: " in x)
+    return {"args": " ".join(args), "seconds": round(seconds, 2), "line": line}
+
+
+def write(root: Path, name: str, n: int, seed: int, size: tuple[int, int]) -> str:
+    from sinkjax import synth as S
+
+    S.write_recording(root / name, n_frames=n, seed=seed, width=size[0], height=size[1],
+                      progress=False)  # fmt: skip
+    return name
+
+
+def startup(root: Path, n_frames: int) -> dict:
+    cache = root / "cache_startup"
+    a = write(root, "rigA", n_frames, 101, SIZES[0])
+    b = write(root, "rigB", n_frames, 202, SIZES[0])
+    out: dict = {"frames": n_frames}
+    out["soft_cold_rigA"] = cli([a, "--out", "sA.csv"], cache, root)
+    out["soft_warm_new_rigB"] = cli([b, "--out", "sB.csv"], cache, root)
+    cli([b, "--method", "classic", "--out", "cB.csv"], cache, root)
+    out["classic_rigB"] = cli([b, "--method", "classic", "--out", "cB.csv"], cache, root)
+    out["soft_no_cache_rigB"] = cli([b, "--out", "sB2.csv"], "off", root)
+    out["ratio_soft_warm_to_classic"] = round(
+        out["soft_warm_new_rigB"]["seconds"] / out["classic_rigB"]["seconds"], 2
+    )
+    return out
+
+
+def campaign(root: Path, n_rec: int, n_frames: int) -> dict:
+    names = [
+        write(root, f"rec{i:02d}", n_frames, 1000 + i, SIZES[i % len(SIZES)]) for i in range(n_rec)
+    ]
+    out: dict = {"recordings": n_rec, "frames_each": n_frames, "sizes": [list(s) for s in SIZES]}
+    cold, cold2 = root / "cache_c1", root / "cache_c2"
+    cli([*names, "--method", "classic", "--out", "c.csv"], cold, root)  # classic's own warm-up
+    out["classic"] = cli([*names, "--method", "classic", "--out", "c.csv"], cold, root)
+    out["soft_cold"] = cli([*names, "--out", "s_cold.csv"], root / "cache_s", root)
+    out["soft_warm"] = cli([*names, "--out", "s.csv"], root / "cache_s", root)
+    out["soft_workers2_cold"] = cli([*names, "--out", "w_cold.csv", "--workers", "2"], cold2, root)
+    out["soft_workers2_warm"] = cli([*names, "--out", "w.csv", "--workers", "2"], cold2, root)
+    same = (root / "w.csv").read_bytes() == (root / "s.csv").read_bytes()
+    out["workers_csv_identical_to_serial"] = same and (
+        (root / "w_cold.csv").read_bytes() == (root / "s_cold.csv").read_bytes()
+    )
+    sec = {k: v["seconds"] for k, v in out.items() if isinstance(v, dict)}
+    out["ratio_soft_cold_to_classic"] = round(sec["soft_cold"] / sec["classic"], 2)
+    out["ratio_soft_warm_to_classic"] = round(sec["soft_warm"] / sec["classic"], 2)
+    out["ratio_workers2_to_serial_cold"] = round(sec["soft_workers2_cold"] / sec["soft_cold"], 2)
+    out["ratio_workers2_to_serial_warm"] = round(sec["soft_workers2_warm"] / sec["soft_warm"], 2)
+    return out
+
+
+def steady_and_profile(n_frames: int, repeats: int) -> dict:
+    """Steady-state ms per 640x480 frame (soft, classic) and the soft stages, in this process."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from sinkjax import synth as S
+    from sinkjax.app.frames import Frame
+    from sinkjax.app.pipeline import iter_estimates
+    from sinkjax.soft.colour import rgb_to_hsi
+    from sinkjax.soft.fit import build_evidence, fit
+    from sinkjax.soft.hough import hough_rim
+    from sinkjax.soft.outline import extract_outline, refine_outline
+    from sinkjax.soft.segmentation import confidence_means, soft_mask
+    from sinkjax.soft.settings import SoftSettings
+    from sinkjax.soft.uncertainty import covariance, measurement_std
+
+    w, h = SIZES[0]
+    rng = np.random.default_rng(7)
+    scenes = S.recording_scenes(rng, 4, width=w, height=h)
+    rig = S.rig_for(scenes[0])
+    images = [S.render(sc, seed=i)[0] for i, sc in enumerate(scenes)]
+
+    def per_frame(method: str) -> float:
+        def frames(n: int):
+            return (Frame(f"f{i}", images[i % len(images)]) for i in range(n))
+
+        list(iter_estimates(frames(8), rig, method=method, batch_size=8))  # compile
+        t0 = time.perf_counter()
+        list(iter_estimates(frames(n_frames), rig, method=method, batch_size=8))
+        return 1000 * (time.perf_counter() - t0) / n_frames
+
+    out: dict = {"size": f"{w}x{h}", "frames": n_frames}
+    out["soft_ms"] = round(per_frame("soft"), 2)
+    out["classic_ms"] = round(per_frame("classic"), 2)
+    out["ratio_soft_to_classic"] = round(out["soft_ms"] / out["classic_ms"], 2)
+
+    # Stages, each jitted alone on the real intermediate values of one frame.
+    s = SoftSettings()
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+    image = jnp.asarray(images[1], dtype) / 255.0
+    rect = jnp.asarray(rig.confidence_rect, jnp.int32)
+    seg = rig.segmentation
+    sign = jnp.asarray(1.0 if rig.travel == "right" else -1.0, dtype)
+    radius = jnp.asarray(rig.wheel_radius_mm, dtype)
+
+    def mask_of(hh, ss, r):
+        h_w, s_w = confidence_means(hh, ss, r)
+        return soft_mask(hh, ss, h_w, s_w, seg)
+
+    def fit_of(outline, circle):
+        return fit(build_evidence(outline, circle, sign, s))
+
+    def cov_of(outline, circle, p):
+        ev = build_evidence(outline, circle, sign, s)
+        return measurement_std(p, covariance(p, ev), radius)
+
+    stages = {
+        "HSI": (jax.jit(rgb_to_hsi), lambda: (image,)),
+        "mask (confidence means + soft mask)": (jax.jit(mask_of), lambda: (hh, ss, rect)),
+        "outline (extract + refine)": (
+            jax.jit(lambda im, m: refine_outline(im, extract_outline(m, s), s)),
+            lambda: (image, mask),
+        ),
+        "Hough start circle": (jax.jit(lambda o: hough_rim(o, h, w, s)), lambda: (outline,)),
+        "evidence + Levenberg-Marquardt fit": (jax.jit(fit_of), lambda: (outline, circle)),
+        "covariance + delta method": (jax.jit(cov_of), lambda: (outline, circle, params)),
+    }
+    hh = ss = mask = outline = circle = params = None
+    rows = []
+    for name, (fn, args) in stages.items():
+        result = jax.block_until_ready(fn(*args()))
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*args()))
+            times.append(1000 * (time.perf_counter() - t0))
+        rows.append({"stage": name, "ms": round(statistics.median(times), 3)})
+        if name == "HSI":
+            hh, ss, _ = result
+        elif name.startswith("mask"):
+            mask = result
+        elif name.startswith("outline"):
+            outline = result
+        elif name.startswith("Hough"):
+            circle = result
+        elif name.startswith("evidence"):
+            params = result.params
+    out["stages"] = rows
+    out["stages_sum_ms"] = round(sum(r["ms"] for r in rows), 2)
+    return out
+
+
+def report(res: dict, seconds: float) -> str:
+    st, ca, ss = res["startup"], res["campaign"], res["steady"]
+    load = "/".join(f"{x:.1f}" for x in os.getloadavg())
+    lines = [
+        "# Campaign timings (issue 13)",
+        "",
+        f"Generated by `python experiments/campaign.py{' --quick' if res['quick'] else ''}` in "
+        f"{seconds:.0f} s on {platform.machine()}, {os.cpu_count()} CPU cores visible, "
+        f"Python {platform.python_version()}, jax {res['jax']} on {res['device']}; load average "
+        f"at the end {load} (1/5/15 min). The machine is shared by other jobs: ratios of one run "
+        "are comparable, absolute seconds move by up to ~2x between runs. **No GPU was lent to "
+        "this run**: every number is the CPU path (which depends on no GPU).",
+        "",
+        "## 1. Start-up: a new rig of an image size already seen",
+        "",
+        f"{st['frames']} frames at 640x480, one command each, wall time of the whole process.",
+        "",
+        "| run | wall [s] | summary line |",
+        "|---|---:|---|",
+    ]
+    for key in ("soft_cold_rigA", "soft_warm_new_rigB", "classic_rigB", "soft_no_cache_rigB"):
+        lines.append(f"| {key} | {st[key]['seconds']:.2f} | {st[key]['line']} |")
+    lines += [
+        "",
+        f"Soft (new rig, warm cache) / classic: **{st['ratio_soft_warm_to_classic']:.2f}x** "
+        "(target <= 1.5x).",
+        "",
+        f"## 2. {ca['recordings']} recordings, {len(ca['sizes'])} image sizes, "
+        f"{ca['frames_each']} frames each, one command",
+        "",
+        "| run | wall [s] | summary line |",
+        "|---|---:|---|",
+    ]
+    for key in ("classic", "soft_cold", "soft_warm", "soft_workers2_cold", "soft_workers2_warm"):
+        lines.append(f"| {key} | {ca[key]['seconds']:.2f} | {ca[key]['line']} |")
+    lines += [
+        "",
+        f"- soft / classic: **{ca['ratio_soft_cold_to_classic']:.2f}x** with an empty compile "
+        f"cache, **{ca['ratio_soft_warm_to_classic']:.2f}x** warm (target <= 1.2x; 3.9x before).",
+        f"- `--workers 2` / serial soft: **{ca['ratio_workers2_to_serial_cold']:.2f}x** cold, "
+        f"**{ca['ratio_workers2_to_serial_warm']:.2f}x** warm (target <= 0.65x).",
+        f"- `--workers 2` CSVs byte-identical to the serial ones: "
+        f"{'yes' if ca['workers_csv_identical_to_serial'] else 'NO'}.",
+        "",
+        f"## 3. Steady state at {ss['size']} ({ss['frames']} frames after compiling)",
+        "",
+        f"soft {ss['soft_ms']:.1f} ms/frame, classic {ss['classic_ms']:.1f} ms/frame: soft is "
+        f"**{ss['ratio_soft_to_classic']:.2f}x** classic. (The issue's 0.7x target is against a "
+        "lean OpenCV-only classic, which this script does not implement.)",
+        "",
+        "## 4. The soft method per stage (640x480, one frame, each stage jitted alone, median)",
+        "",
+        "| stage | ms |",
+        "|---|---:|",
+        *(f"| {r['stage']} | {r['ms']:.2f} |" for r in ss["stages"]),
+        f"| sum of stages | {ss['stages_sum_ms']:.2f} |",
+        f"| whole frame through the pipeline | {ss['soft_ms']:.2f} |",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="fewer recordings and frames")
+    p.add_argument("--out-dir", type=Path, default=RESULTS)
+    args = p.parse_args()
+    import jax
+
+    t0 = time.perf_counter()
+    n_rec, n_frames, steady = (8, 3, 16) if args.quick else (15, 6, 48)
+    res: dict = {"quick": args.quick, "jax": jax.__version__, "device": str(jax.devices()[0])}
+    with tempfile.TemporaryDirectory(prefix="sinkjax-campaign-") as tmp:
+        root = Path(tmp)
+        res["startup"] = startup(root, 8)
+        res["campaign"] = campaign(root, n_rec, n_frames)
+    res["steady"] = steady_and_profile(steady, 5 if args.quick else 20)
+    seconds = time.perf_counter() - t0
+    name = "campaign_quick" if args.quick else "campaign"
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    (args.out_dir / f"{name}.json").write_text(json.dumps(res, indent=1) + "\n")
+    (args.out_dir / f"{name}.md").write_text(report(res, seconds))
+    print(report(res, seconds))
+
+
+if __name__ == "__main__":
+    main()
