@@ -91,7 +91,7 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
         - _shift(m, -1, 1)
     ) / 8.0
     mag2 = gx * gx + gy * gy
-    mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0)
+    mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0).astype(mag2.dtype)
     # Quantise the gradient direction to 0/45/90/135 degrees for non-maximum suppression, by
     # comparisons (tan 22.5 deg) rather than an arctangent of every pixel.
     ax, ay = jnp.abs(gx), jnp.abs(gy)
@@ -115,7 +115,7 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     ridge = ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
 
     flat, count = _compact(ridge.ravel(), k)
-    valid = jnp.arange(k) < count
+    valid = jnp.arange(k, dtype=count.dtype) < count
     rows = flat // width
     cols = flat % width
     e0 = mag[rows, cols]
