@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+import numpy as np
+from jaxtyping import Array, Float
 
 from ..geometry import entry_angle_rad, exit_angle_rad, sinkage_px
 
@@ -97,7 +98,10 @@ def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
 
 
 def end_point(
-    alpha: Float[ArrayLike, ""], c: Float[ArrayLike, ""], r: Float[ArrayLike, ""], side: float
+    alpha: Float[Array | np.floating, ""],
+    c: Float[Array | np.floating, ""],
+    r: Float[Array | np.floating, ""],
+    side: float,
 ) -> Float[Array, " 2"]:
     """Intersection of the line -sin(a) u + cos(a) v = c with the rim, on side +1 (A) or -1 (B).
 
