@@ -40,7 +40,7 @@ def _kasa(x: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
     u, v = x - xm, y - ym
     z = u * u + v * v
     a = jnp.stack([u, v, jnp.ones_like(u)], -1) * jnp.sqrt(w)[:, None]
-    sol = jnp.linalg.lstsq(a.T @ a + 1e-9 * jnp.eye(3), a.T @ (-z * jnp.sqrt(w)))[0]
+    sol = jnp.linalg.lstsq(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (-z * jnp.sqrt(w)))[0]
     d, e, f = sol
     cx, cy = -d / 2, -e / 2
     r = jnp.sqrt(jnp.maximum(cx * cx + cy * cy - f, 1e-6))
@@ -67,12 +67,12 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
     iy = jnp.floor(vy / bin_px).astype(jnp.int32)
     inside = (ix >= 0) & (ix < bw) & (iy >= 0) & (iy < bh)
     lin = jnp.where(inside, iy * bw + ix, 0)
-    acc = jnp.zeros(bh * bw, dt).at[lin.ravel()].add((w[:, None] * inside).ravel())
+    acc = jnp.zeros(bh * bw, dt).at[lin.ravel()].add((w[:, None] * inside.astype(dt)).ravel())
     acc = acc.reshape(bh, bw)
     acc = jax.lax.reduce_window(acc, 0.0, jax.lax.add, (3, 3), (1, 1), "SAME")
     best = jnp.argmax(acc)
-    cx = ((best % bw + 0.5) * bin_px).astype(dt)
-    cy = ((best // bw + 0.5) * bin_px).astype(dt)
+    cx = ((best % bw).astype(dt) + 0.5) * bin_px
+    cy = ((best // bw).astype(dt) + 0.5) * bin_px
 
     def histogram(cx: Array, cy: Array) -> tuple[Array, Array]:
         dx, dy = outline.x_px - cx, outline.y_px - cy
@@ -90,7 +90,7 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
         dx, dy = outline.x_px - cx, outline.y_px - cy
         d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
         align = (dx * outline.nx + dy * outline.ny) / d
-        wi = w * (jnp.abs(d - r) < band) * (align > 0.8)
+        wi = w * (jnp.abs(d - r) < band).astype(dt) * (align > 0.8).astype(dt)
         ncx, ncy, nr = _kasa(outline.x_px, outline.y_px, wi)
         enough = jnp.sum(wi) > 20.0
         return (
@@ -116,6 +116,6 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
     dx, dy = outline.x_px - cx, outline.y_px - cy
     d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
     align = (dx * outline.nx + dy * outline.ny) / d
-    on_rim = w * (jnp.abs(d - r) < 1.5) * (align > 0.8)
+    on_rim = w * (jnp.abs(d - r) < 1.5).astype(dt) * (align > 0.8).astype(dt)
     support = jnp.sum(on_rim) / (2 * jnp.pi * jnp.maximum(r, 1.0))
     return Circle(cx_px=cx, cy_px=cy, r_px=r, support=support)
