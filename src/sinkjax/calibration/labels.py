@@ -121,6 +121,11 @@ def _parse_cell(cell: str, where: str, column: str) -> float:
             f"{where} {column}: {cell!r} is not a number; write it with '.' decimals and no "
             "unit, or leave the cell empty if it was not measured"
         ) from None
+    if not math.isfinite(value):
+        raise LabelError(
+            f"{where} {column}: {cell!r} is not a finite number; leave the cell empty if it was "
+            "not measured"
+        )
     limit = math.inf if column == "sinkage_mm" else 180.0
     if not 0.0 <= value <= limit:
         unit = "mm >= 0" if column == "sinkage_mm" else "degrees in [0, 180]"
