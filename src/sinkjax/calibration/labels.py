@@ -51,7 +51,11 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
         text = p.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise LabelError(f"{p}: cannot read it as UTF-8 text ({e})") from e
-    reader = csv.reader(text.splitlines())
+    try:
+        lines = list(csv.reader(text.splitlines()))
+    except csv.Error as e:
+        raise LabelError(f"{p}: not a CSV file ({e})") from e
+    reader = iter(lines)
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in LABEL_COLUMNS if c not in header]
     if missing:
