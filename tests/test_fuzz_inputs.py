@@ -664,3 +664,61 @@ def test_every_subcommand_on_garbage_prints_no_traceback(tmp_path):
     assert codes == [2, 2, 2, 2, 2, 0, 2, 2, 2, 2, 2], (codes, proc.stderr)
     errors = [line for line in proc.stderr.splitlines() if ": error: " in line]
     assert len(errors) == 10, proc.stderr
+
+
+# --- the rim search follows the rig: a small wheel in a large frame -----------------------------
+
+
+@pytest.fixture(scope="module")
+def small_wheel_in_large_frame():
+    """A 320x240 synthetic scene (rim ~72 px) drawn on a 960x720 canvas: below 0.12 of 720."""
+    import dataclasses
+
+    from sinkjax.synth.presets import random_scene
+    from sinkjax.synth.raster import render
+    from sinkjax.synth.recording import rig_for
+
+    scene = random_scene(np.random.default_rng(3), width=320, height=240)
+    small_image, _ = render(scene, 0)
+    big = dataclasses.replace(scene, width=960, height=720)
+    image, truth = render(big, 0)
+    return image, rig_for(big), truth, small_image, rig_for(scene)
+
+
+def test_classic_rim_search_follows_the_hint(small_wheel_in_large_frame):
+    import dataclasses
+
+    from sinkjax.classic.estimator import estimate_classic
+
+    image, rig, truth, small_image, small_rig = small_wheel_in_large_frame
+    plain = estimate_classic(image, rig, "x")
+    assert plain.status == "fit_failed" and "rim radii searched: 86-540 px" in plain.message
+    assert "rim_radius_px" in plain.message
+    hinted = estimate_classic(image, dataclasses.replace(rig, rim_radius_px=70.0), "x")
+    assert hinted.status == "ok" and abs(hinted.radius_px - truth.radius_px) < 1.0
+    # The same wheel measured in its own small frame (no hint needed there) agrees.
+    alone = estimate_classic(small_image, small_rig, "x")
+    assert abs(hinted.sinkage_mm - alone.sinkage_mm) < 0.5
+    assert abs(hinted.sinkage_mm - truth.sinkage_mm) < 2.0
+    wrong = estimate_classic(image, dataclasses.replace(rig, rim_radius_px=300.0), "x")
+    assert wrong.status != "ok" and "225-375 px, from the rig's rim_radius_px" in wrong.message
+
+
+def test_soft_rim_search_follows_the_hint_with_one_compile(small_wheel_in_large_frame):
+    import dataclasses
+
+    from sinkjax.soft import estimator as soft
+
+    image, rig, truth, _, _ = small_wheel_in_large_frame
+    (plain,) = soft.estimate_batch([image], rig, ["x"])
+    assert plain.status == "no_wheel" and "rim radii searched: 86-540 px" in plain.message
+    before = soft._measure_one._cache_size()
+    radii = []
+    for hint in (70.0, 78.0):
+        (hinted,) = soft.estimate_batch(
+            [image], dataclasses.replace(rig, rim_radius_px=hint), ["x"]
+        )
+        assert hinted.status in ("ok", "no_contact"), hinted.message
+        radii.append(hinted.radius_px)
+    assert soft._measure_one._cache_size() == before + 1  # the hint is traced, not static
+    assert all(abs(r - truth.radius_px) < 1.0 for r in radii)

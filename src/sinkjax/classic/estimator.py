@@ -200,7 +200,7 @@ def estimate_classic(
             name,
             Status.FIT_FAILED,
             f"rim circle (r = {r:.1f} px) is supported by only {n_in} outline points; "
-            "the wheel's outline is not a circle (segmentation?)",
+            f"the wheel's outline is not a circle (segmentation?) or not in range ({searched})",
         )
     rx, ry, rw, rh = rect
     if math.hypot(rx + 0.5 * (rw - 1) - cx, ry + 0.5 * (rh - 1) - cy) > r:
