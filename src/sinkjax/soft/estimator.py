@@ -233,12 +233,12 @@ def estimate_batch(
         each = [_measure_one(jnp.asarray(im), *args, uncertainty, span) for im in images]
         out = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *each)
     out = jax.tree_util.tree_map(np.asarray, out)
-    searched = "{:.0f}-{:.0f} px, {}".format(
-        *(hint or radius_range_px(height, width)),
+    lo, hi = hint or radius_range_px(height, width)
+    searched = f"{lo:.0f}-{hi:.0f} px, " + (
         "from the rig's rim_radius_px"
         if hint
-        else "fractions of the image size; set "
-        "rim_radius_px in the rig if the rim's radius is outside",
+        else "fractions of the image size; set rim_radius_px in the rig if the rim's radius "
+        "is outside"
     )
     return [frame_result(out, i, names[i], rig, searched) for i in range(n)]
 

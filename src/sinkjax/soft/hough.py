@@ -60,6 +60,8 @@ def hough_rim(
     function serves every hint); None: :func:`radius_range_px` of the image size.
     """
     dt = outline.x_px.dtype
+    r_min: ArrayLike
+    r_max: ArrayLike
     if rim_range_px is None:
         r_min, r_max = radius_range_px(height, width)
         # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin
