@@ -14,7 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .outline import Outline
 from .settings import SoftSettings
@@ -47,15 +47,37 @@ def _kasa(x: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
     return cx + xm, cy + ym, r
 
 
-def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings) -> Circle:
-    """Initial rim circle (image pixels). ``height``/``width`` are static."""
+def hough_rim(
+    outline: Outline,
+    height: int,
+    width: int,
+    settings: SoftSettings,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
+) -> Circle:
+    """Initial rim circle (image pixels). ``height``/``width`` are static.
+
+    ``rim_range_px``: the radii to search (a rig's ``rim_radius_px`` hint, traced: one compiled
+    function serves every hint); None: :func:`radius_range_px` of the image size.
+    """
     dt = outline.x_px.dtype
     bin_px = settings.centre_bin_px
-    r_min, r_max = radius_range_px(height, width)
-    # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin of the
-    # true centre for the nearest candidate (coarser steps smear the votes into a ring).
-    n_radii = int(np.ceil((r_max - r_min) / bin_px)) + 1
-    radii = jnp.linspace(r_min, r_max, n_radii, dtype=dt)
+    r_min: ArrayLike
+    r_max: ArrayLike
+    if rim_range_px is None:
+        r_min, r_max = radius_range_px(height, width)
+        # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin
+        # of the true centre for the nearest candidate (coarser steps smear the votes).
+        n_radii = int(np.ceil((r_max - r_min) / bin_px)) + 1
+        radii = jnp.linspace(r_min, r_max, n_radii, dtype=dt)
+        nb = int(r_max) + 8
+    else:
+        # Sizes fixed by the image alone: enough radii to stay a bin apart over half the
+        # diagonal, and radius histogram bins up to the diagonal.
+        diagonal = float(np.hypot(height, width))
+        r_min, r_max = (jnp.asarray(v, dt) for v in rim_range_px)
+        n_radii = int(np.ceil(0.5 * diagonal / bin_px)) + 1
+        radii = r_min + (r_max - r_min) * jnp.linspace(0.0, 1.0, n_radii, dtype=dt)
+        nb = int(diagonal) + 8
     # Only edges with non-wheel beyond them can be the rim (or lug tips).
     w = outline.weight * jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     # Centre votes: p - n r (the normal points outwards on the rim).
@@ -79,7 +101,6 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
         d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
         align = (dx * outline.nx + dy * outline.ny) / d
         wr = w * jnp.clip(align, 0.0, 1.0) ** 4
-        nb = int(r_max) + 8
         hist = jnp.zeros(nb, dt).at[jnp.clip(jnp.round(d).astype(jnp.int32), 0, nb - 1)].add(wr)
         hist = jnp.convolve(hist, jnp.array([1.0, 2.0, 3.0, 2.0, 1.0], dt), mode="same")
         rb = jnp.arange(nb, dtype=dt)
