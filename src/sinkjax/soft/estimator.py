@@ -11,14 +11,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import from_wheel_frame, travel_sign
 from ..result import FrameResult, Overlay, failed, no_contact
-from ..rig import Rig, SegmentationParams, rect_problem
+from ..rig import Rig, SegmentationParams, rect_problem, rim_hint_range_px
 from ..status import Status
 from .fit import build_evidence, fit
-from .hough import hough_rim
+from .hough import hough_rim, radius_range_px
 from .model import end_point, measurements
 from .outline import extract_outline, refine_outline
 from .segmentation import Rect, soft_open, wheel_mask
@@ -65,6 +65,7 @@ def measure(
     uncertainty: UncertaintyModel | None = None,
     open_radius_px: int = 0,
     settings: SoftSettings | None = None,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> SoftEstimate:
     """The soft method on one image in [0, 1].
 
@@ -77,6 +78,8 @@ def measure(
     as a differentiable min/max filter); by default only the outline's smoothing cleans the mask,
     which ``experiments/ablation_cleanup.py`` shows is enough. ``settings`` (None: the defaults)
     are the method's tuning settings, array leaves (not static: a new value does not recompile).
+    ``rim_range_px``: the rim radii to search (px; may be traced), None for the default
+    fractions of the image size.
     Never raises for image content: problems are reported in ``status``.
     """
     mask = wheel_mask(image, seg, rect)
@@ -89,6 +92,7 @@ def measure(
         wheel_radius_mm=wheel_radius_mm,
         uncertainty=uncertainty,
         settings=settings,
+        rim_range_px=rim_range_px,
     )
 
 
@@ -100,6 +104,7 @@ def measure_from_mask(
     wheel_radius_mm: float | Float[Array, ""] = 1.0,
     uncertainty: UncertaintyModel | None = None,
     settings: SoftSettings | None = None,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
@@ -117,7 +122,7 @@ def measure_from_mask(
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
     outline = refine_outline(image, extract_outline(mask, s), s)
     # The starting circle is a discrete choice: no gradient flows through it.
-    circle = jax.lax.stop_gradient(hough_rim(outline, height, width, s))
+    circle = jax.lax.stop_gradient(hough_rim(outline, height, width, s, rim_range_px))
     sign = travel_sign(travel) if isinstance(travel, str) else travel
     ev = build_evidence(outline, circle, sign, s)
     res = fit(ev)
@@ -161,6 +166,9 @@ class RigArrays(eqx.Module):
     travel_sign: Float[Array, ""]  # +1.0 travel right, -1.0 left
     wheel_radius_mm: Float[Array, ""]
     uncertainty: UncertaintyModel  # its leaves as arrays
+    # The rig's rim_radius_px hint as the radii to search; None: the image size's default range
+    # (hinted and unhinted rigs are two compiled functions per size, each serving all rigs).
+    rim_range_px: tuple[Float[Array, ""], Float[Array, ""]] | None
 
 
 def rig_arrays(rig: Rig, uncertainty: UncertaintyModel | None = None) -> RigArrays:
@@ -168,11 +176,15 @@ def rig_arrays(rig: Rig, uncertainty: UncertaintyModel | None = None) -> RigArra
     dtypes, so that every rig gives the same abstract signature."""
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
     model = UncertaintyModel() if uncertainty is None else uncertainty
+    hint = rim_hint_range_px(rig)
     return RigArrays(
         rect_px=jnp.asarray(rig.confidence_rect, jnp.int32),
         travel_sign=jnp.asarray(travel_sign(rig.travel), dtype),
         wheel_radius_mm=jnp.asarray(rig.wheel_radius_mm, dtype),
         uncertainty=jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), model),
+        rim_range_px=None
+        if hint is None
+        else (jnp.asarray(hint[0], dtype), jnp.asarray(hint[1], dtype)),
     )
 
 
@@ -187,6 +199,7 @@ def _measure_u8(image_u8: Array, seg: SegmentationParams, rig: RigArrays) -> Sof
         travel=rig.travel_sign,
         wheel_radius_mm=rig.wheel_radius_mm,
         uncertainty=rig.uncertainty,
+        rim_range_px=rig.rim_range_px,
     )
 
 
@@ -247,6 +260,7 @@ def estimate_batch(
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
     seg = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), rig.segmentation)
     args = (seg, rig_arrays(rig, uncertainty))
+    hint = rim_hint_range_px(rig)
     if _use_vmap():
         size = max(pad_to or padded_size(n), n)
         batch = np.stack(images + [images[0]] * (size - n))
@@ -256,17 +270,26 @@ def estimate_batch(
         # NumPy, not jnp.stack: eager JAX ops would each compile once per process.
         out = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *each)
     out = jax.tree_util.tree_map(np.asarray, out)
-    return [frame_result(out, i, names[i], rig) for i in range(n)]
+    lo, hi = hint or radius_range_px(height, width)
+    searched = f"{lo:.0f}-{hi:.0f} px, " + (
+        "from the rig's rim_radius_px"
+        if hint
+        else "fractions of the image size; set rim_radius_px in the rig if the rim's radius "
+        "is outside"
+    )
+    return [frame_result(out, i, names[i], rig, searched) for i in range(n)]
 
 
-def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig) -> FrameResult:
+def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str = "") -> FrameResult:
     """Frame ``i`` of a batched :class:`SoftEstimate` as the common :class:`FrameResult`
-    (degrees, image px, the overlay geometry)."""
+    (degrees, image px, the overlay geometry). ``searched``: the rim radii searched, for the
+    message of a frame without a rim."""
     p = out.params[i].astype(float)
     status = Status.from_code(int(out.status[i]))
     cx, cy, r = float(p[0]), float(p[1]), float(p[2])
     if status == Status.NO_WHEEL:
-        return failed(name, Status.NO_WHEEL)
+        rim = f" (rim radii searched: {searched})" if searched else ""
+        return failed(name, Status.NO_WHEEL, Status.NO_WHEEL.message + rim)
     if status == Status.FIT_FAILED or not np.all(np.isfinite(p)):
         return FrameResult(
             image=name,
