@@ -38,8 +38,8 @@ def confidence_means(
             )
         return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
     x0, y0, w0, h0 = (rect[i] for i in range(4))
-    cols = jnp.arange(width)
-    rows = jnp.arange(height)
+    cols = jnp.arange(width, dtype=rect.dtype)
+    rows = jnp.arange(height, dtype=rect.dtype)
     inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
     weight = inside.astype(s.dtype)
     count = jnp.maximum(jnp.sum(weight), 1.0)
