@@ -37,7 +37,7 @@ class Truth:
     terrain: str
 
 
-def _inside_excess(scene: Scene, x: F64 | float) -> F64 | float:
+def _inside_excess(scene: Scene, x: F64) -> F64:
     """|P - O|^2 - r^2 for the surface point above x: negative where it lies inside the rim."""
     dy = surface_y_px(scene, x) - scene.centre_y_px
     dx = x - scene.centre_x_px
