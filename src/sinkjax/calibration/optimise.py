@@ -156,14 +156,19 @@ def calibrate(
             # The loss is piecewise smooth: a step landed where frames stop measuring. Go back
             # to the best point, forget the momentum that carried us here, take smaller steps.
             _, raw, out = best
-            state, scale = opt.init(raw), 0.5 * scale
+            with jax.numpy_dtype_promotion("standard"):
+                state = opt.init(raw)
+            scale = 0.5 * scale
         grad = out.grad
         if augment:
             noisy = call(
                 raw, jax.random.fold_in(key, step), use_augment=True, config=augment_config
             )
             grad = 0.5 * (grad + noisy.grad)
-        updates, state = opt.update(grad, state, raw)
+        # optax's schedules mix Python floats with int32 step counts: allow that promotion
+        # here even where the user runs JAX with strict dtype promotion.
+        with jax.numpy_dtype_promotion("standard"):
+            updates, state = opt.update(grad, state, raw)
         raw = raw + scale * updates
         bar.set_postfix(loss=f"{losses[-1]:.4g}", best=f"{losses[best[0]]:.4g}")
         bar.update()
