@@ -564,6 +564,7 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     from sinkjax.soft.fit import build_evidence
     from sinkjax.soft.hough import hough_rim
     from sinkjax.soft.outline import extract_outline, refine_outline
+    from sinkjax.soft.settings import SoftSettings
     from sinkjax.soft.segmentation import wheel_mask
 
     rig = load_rig(recording / "rig.toml")
@@ -575,8 +576,9 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     # The removed guard's probe, on this frame's evidence: with plain square roots of the weights
     # the residuals' derivative with respect to the boundary weights is not finite.
     mask = wheel_mask(image, C.from_raw(raw), rig.confidence_rect)
-    outline = refine_outline(image, extract_outline(mask))
-    ev = build_evidence(outline, hough_rim(outline, *mask.shape), travel_sign(rig.travel))
+    s = SoftSettings()
+    outline = refine_outline(image, extract_outline(mask, s), s)
+    ev = build_evidence(outline, hough_rim(outline, *mask.shape, s), travel_sign(rig.travel), s)
     assert np.any(np.asarray(ev.w_line) == 0) and np.any(np.asarray(ev.w_line) > 0)
     g_naive = jax.grad(
         lambda w: jnp.sum(naive_residuals(ev.start, eqx.tree_at(lambda e: e.w_line, ev, w)))

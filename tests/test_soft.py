@@ -220,4 +220,4 @@ def test_bad_rect_rows(rendered) -> None:
     images, _, _ = rendered("clean", n=1)
     bad = Rig(wheel_radius_mm=140.0, confidence_rect=(W - 5, 10, 20, 20))
     rows = estimate_batch(images, bad, ["a"])
-    assert rows[0].status == "bad_rect" and "off the" in rows[0].message
+    assert rows[0].status == "bad_rect" and "extends beyond" in rows[0].message

@@ -107,8 +107,9 @@ def label_values(geometry: LabelGeometry, rig: Rig) -> LabelValues:
     A soil line that does not reach inside the rim is no contact: sinkage 0, both angles 0.
     """
     (cx, cy), r = geometry.centre_px, geometry.radius_px
-    a_u, a_v = to_wheel_frame(geometry.a_px[0], geometry.a_px[1], cx, cy, rig.travel)
-    b_u, b_v = to_wheel_frame(geometry.b_px[0], geometry.b_px[1], cx, cy, rig.travel)
+    (ax, ay), (bx, by) = (tuple(map(float, p)) for p in (geometry.a_px, geometry.b_px))
+    a_u, a_v = to_wheel_frame(ax, ay, cx, cy, rig.travel)
+    b_u, b_v = to_wheel_frame(bx, by, cx, cy, rig.travel)
     g = geometry_from_boundary(
         geometry.soil_px[:, 0],
         geometry.soil_px[:, 1],
