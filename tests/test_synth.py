@@ -258,6 +258,27 @@ def test_truth_ends_on_rim_and_matches_geometry_module():
         assert math.degrees(float(g.theta2_rad)) == pytest.approx(t.theta2_deg, abs=1e-8)
 
 
+def test_truth_angles_atan2_form():
+    # A ahead of O and B behind it: the paper's Eqs. 2-3 as printed.
+    t = synth.true_geometry(_scene("bulldozed", 4, preset="full"))
+    (ua, va), (ub, vb) = t.a_px, t.b_end_px
+    assert ua > 0 > ub
+    assert t.theta1_deg == pytest.approx(90 - math.degrees(math.atan(va / ua)), abs=1e-9)
+    assert t.theta2_deg == pytest.approx(90 + math.degrees(math.atan(vb / ub)), abs=1e-9)
+    # A 45-degree slope rising to the entry side that touches only the entry half of the rim:
+    # B lies ahead of O, so theta2 = atan2(-x_B, y_B) < 0 (docs/conventions.md §1).
+    r, cy = 100.0, 120.0
+    scene = synth.Scene(
+        width=320, height=240, centre_x_px=160.0, centre_y_px=cy, radius_px=r,
+        soil_level_px=cy + 1.2 * r, tilt=-1.0,
+    )  # fmt: skip
+    t = synth.true_geometry(scene)
+    (ua, va), (ub, vb) = t.a_px, t.b_end_px
+    assert t.contact and ua > ub > 0
+    assert t.theta2_deg == pytest.approx(math.degrees(math.atan2(-ub, vb)), abs=1e-9)
+    assert t.theta2_deg < -5 and t.theta1_deg > 0
+
+
 def test_travel_left_swaps_angles_and_mirror_keeps_truth():
     scene = _scene("bulldozed", 8, preset="full")
     right = synth.true_geometry(scene)
