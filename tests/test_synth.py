@@ -380,3 +380,45 @@ def test_write_recording(tmp_path):
     img, _ = synth.render(scenes[1], frame_seed(0, 1))
     disk = cv2.imread(str(clean / "frame_0001.png"))[..., ::-1]
     assert np.array_equal(img, disk)
+
+
+def test_hard_presets_are_hard_and_leave_the_others_alone():
+    from sinkjax.synth.hard import HARD_PRESETS, harden
+
+    assert synth.PRESETS[:6] == ("clean", "full", "shading", "dust", "cast", "lowlight")
+    # A hard set-up is the full set-up drawn first, made worse: same geometry and soil.
+    full = camera_setup(np.random.default_rng(9), 320, 240, "full")
+    for preset in HARD_PRESETS:
+        hard = camera_setup(np.random.default_rng(9), 320, 240, preset)
+        assert (hard.radius_px, hard.soil_rgb, hard.n_lugs) == (
+            full.radius_px,
+            full.soil_rgb,
+            full.n_lugs,
+        )
+        assert len(hard.specular) >= 3 and max(a for *_, a in hard.specular) >= 0.6
+    with pytest.raises(ValueError, match="hard_"):
+        harden(np.random.default_rng(0), full, "full")
+
+    def hue(rgb):
+        return colorsys.rgb_to_hsv(*rgb)[0] * 360
+
+    def gap(a, b):
+        d = abs(a - b) % 360
+        return min(d, 360 - d)
+
+    # The cast tints the soil towards the wheel's hue: the hue gap shrinks.
+    for seed in range(4):
+        s = camera_setup(np.random.default_rng(seed), 320, 240, "hard_cast")
+        cast = np.asarray(s.cast_rgb)
+        before = gap(hue(s.soil_rgb), hue(s.wheel_rgb))
+        after = gap(hue(np.asarray(s.soil_rgb) * cast), hue(np.asarray(s.wheel_rgb) * cast))
+        assert after < before - 5
+    # hard_mix recordings cycle in hollow_ahead: soil only on the entry half, B ahead of O.
+    scenes = synth.recording_scenes(
+        np.random.default_rng(1), 6, preset="hard_mix", width=240, height=180
+    )
+    assert [s.terrain for s in scenes] == [*synth.TERRAINS, "hollow_ahead"]
+    t = synth.true_geometry(scenes[-1])
+    assert t.b_end_px[0] > 0 and t.theta2_deg < 0 < t.theta1_deg
+    img, _ = synth.render(scenes[-1], seed=0)
+    assert img.shape == (180, 240, 3)
