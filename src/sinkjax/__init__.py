@@ -62,6 +62,7 @@ from .soft.segmentation import (
     soft_mask as soft_mask,
     wheel_mask as wheel_mask,
 )
+from .soft.settings import SoftSettings as SoftSettings
 from .soft.uncertainty import UncertaintyModel as UncertaintyModel
 from .status import Status as Status
 from .synth import (

@@ -310,12 +310,13 @@ def _from_result(result: FrameResult, rig: Rig) -> dict[str, Any]:
 def rim_guess(image: np.ndarray, rig: Rig) -> tuple[float, float, float] | None:
     """The soft method's starting rim circle (cx, cy, r px) for an RGB uint8 image, or None
     when its edge support is too weak to call it a rim. Compiled once per image size."""
-    from ..soft.estimator import MIN_RIM_SUPPORT
+    from ..soft.settings import SoftSettings
 
     cx, cy, r, support = (
         float(v) for v in _rim_guess(image, rig.segmentation, rig.confidence_rect)
     )
-    if not (support >= MIN_RIM_SUPPORT and all(map(math.isfinite, (cx, cy, r)))):
+    min_support = float(SoftSettings().min_rim_support)
+    if not (support >= min_support and all(map(math.isfinite, (cx, cy, r)))):
         return None
     return cx, cy, r
 
@@ -328,12 +329,15 @@ def _rim_guess_fn() -> Callable[..., Any]:
     from ..soft.hough import hough_rim
     from ..soft.outline import extract_outline, refine_outline
     from ..soft.segmentation import wheel_mask
+    from ..soft.settings import SoftSettings
 
     @functools.partial(jax.jit, static_argnames=("rect",))
     def guess(image_u8, seg, rect):
         image = image_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
-        outline = refine_outline(image, extract_outline(wheel_mask(image, seg, rect)))
-        c = hough_rim(outline, image.shape[0], image.shape[1])
+        settings = SoftSettings().astype(image.dtype)
+        mask = wheel_mask(image, seg, rect)
+        outline = refine_outline(image, extract_outline(mask, settings), settings)
+        c = hough_rim(outline, image.shape[0], image.shape[1], settings)
         return jnp.stack([c.cx_px, c.cy_px, c.r_px, c.support])
 
     return guess

@@ -24,12 +24,11 @@ from .hough import hough_rim
 from .model import end_point, measurements
 from .outline import extract_outline, refine_outline
 from .segmentation import soft_open, wheel_mask
+from .settings import SoftSettings
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
-# A rim must show edge evidence along at least this fraction of its circumference.
-MIN_RIM_SUPPORT = 0.2
-# A boundary needs at least this many pixels' worth of points to count as contact.
-MIN_BOUNDARY_POINTS = 4.0
+# The default contact threshold as a number, for calibration's targets (SoftSettings has it).
+MIN_BOUNDARY_POINTS = float(SoftSettings().min_boundary_points)
 
 
 class SoftEstimate(eqx.Module):
@@ -64,6 +63,7 @@ def measure(
     wheel_radius_mm: float = 1.0,
     uncertainty: UncertaintyModel | None = None,
     open_radius_px: int = 0,
+    settings: SoftSettings | None = None,
 ) -> SoftEstimate:
     """The soft method on one image in [0, 1]. Keyword arguments are static.
 
@@ -71,14 +71,20 @@ def measure(
     ``wheel_radius_mm`` the rim's physical radius R (sinkage is reported as z0 * R / r).
     ``open_radius_px`` > 0 adds a grey-level opening of the mask (the paper's erosion/dilation
     as a differentiable min/max filter); by default only the outline's smoothing cleans the mask,
-    which ``experiments/ablation_cleanup.py`` shows is enough.
+    which ``experiments/ablation_cleanup.py`` shows is enough. ``settings`` (None: the defaults)
+    are the method's tuning settings, array leaves (not static: a new value does not recompile).
     Never raises for image content: problems are reported in ``status``.
     """
     mask = wheel_mask(image, seg, rect)
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
     return measure_from_mask(
-        image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, uncertainty=uncertainty
+        image,
+        mask,
+        travel=travel,
+        wheel_radius_mm=wheel_radius_mm,
+        uncertainty=uncertainty,
+        settings=settings,
     )
 
 
@@ -89,12 +95,13 @@ def measure_from_mask(
     travel: str = "right",
     wheel_radius_mm: float = 1.0,
     uncertainty: UncertaintyModel | None = None,
+    settings: SoftSettings | None = None,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
     ``measure`` is ``measure_from_mask(image, wheel_mask(image, seg, rect))``; a learned
     segmenter (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
-    outline is located on its colours. Keyword arguments are static.
+    outline is located on its colours. Keyword arguments are static, except ``settings``.
     Raises ValueError if the shapes disagree.
     """
     if image.ndim != 3 or image.shape[-1] != 3 or mask.shape != image.shape[:2]:
@@ -103,18 +110,19 @@ def measure_from_mask(
             f"and mask {mask.shape}"
         )
     height, width = mask.shape
-    outline = refine_outline(image, extract_outline(mask))
+    s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
+    outline = refine_outline(image, extract_outline(mask, s), s)
     # The starting circle is a discrete choice: no gradient flows through it.
-    circle = jax.lax.stop_gradient(hough_rim(outline, height, width))
-    ev = build_evidence(outline, circle, travel_sign(travel))
+    circle = jax.lax.stop_gradient(hough_rim(outline, height, width, s))
+    ev = build_evidence(outline, circle, travel_sign(travel), s)
     res = fit(ev)
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
     std = measurement_std(p, cov, wheel_radius_mm, uncertainty)
-    contact = jnp.sum(ev.w_line) >= MIN_BOUNDARY_POINTS
+    contact = jnp.sum(ev.w_line) >= s.min_boundary_points
     status = jnp.where(
-        circle.support < MIN_RIM_SUPPORT,
+        circle.support < s.min_rim_support,
         Status.NO_WHEEL.code,
         jnp.where(
             ~res.ok,

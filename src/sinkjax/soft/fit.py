@@ -19,20 +19,13 @@ from ..geometry import equivalent_line
 from .hough import Circle
 from .model import Evidence, residuals
 from .outline import Outline
-
-# Band around the rim (px) that counts as rim evidence, and the gap kept free between the rim
-# and the boundary points (where the soil edge and the rim edge meet, neither is clean).
-RIM_BAND_IN_PX = 1.5
-END_CLEARANCE_PX = 3.5
-RIM_BAND_OUT_PX = 4.0
-# Wheel allowed below a boundary point in its column (px, soft scale). Small: the top edge of a
-# lightening hole near the soil has only a few pixels of wheel between the hole and the soil.
-WHEEL_BELOW_SCALE_PX = 0.75
+from .settings import SoftSettings
 
 
-def end_window_px(r_px: Array) -> Array:
+def end_window_px(r_px: Array, settings: SoftSettings) -> Array:
     """Length of boundary used to find each end's tangent: short enough to follow the surface."""
-    return jnp.clip(0.12 * r_px, 8.0, 30.0)
+    s = settings.astype(r_px.dtype)
+    return jnp.clip(s.end_window_fraction * r_px, s.end_window_min_px, s.end_window_max_px)
 
 
 def _orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
@@ -46,9 +39,17 @@ def _orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
     return alpha, -jnp.sin(alpha) * um + jnp.cos(alpha) * vm
 
 
-def build_evidence(outline: Outline, circle: Circle, sign: float) -> Evidence:
-    """Group weights for every outline point, and the solve's starting point."""
+def build_evidence(
+    outline: Outline, circle: Circle, sign: float, settings: SoftSettings
+) -> Evidence:
+    """Group weights for every outline point, and the solve's starting point.
+
+    The bands around the rim decide which points are rim evidence, which may be boundary (well
+    inside the rim, facing down, soil below them) and which may hold the ends' tangents (clear
+    of the corner where the soil edge meets the rim edge); see :class:`SoftSettings`.
+    """
     dt = outline.x_px.dtype
+    s = settings.astype(dt)
     u = sign * (outline.x_px - circle.cx_px)
     v = outline.y_px - circle.cy_px
     d = jnp.sqrt(u * u + v * v + 1e-12)
@@ -57,13 +58,13 @@ def build_evidence(outline: Outline, circle: Circle, sign: float) -> Evidence:
     align = align / d
     w = outline.weight
     dr = d - circle.r_px
-    in_band = (dr >= -RIM_BAND_IN_PX) & (dr <= RIM_BAND_OUT_PX)
+    in_band = (dr >= -s.rim_band_in_px) & (dr <= s.rim_band_out_px)
     outer = jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     w_rim = w * in_band * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
 
-    inside = dr < -RIM_BAND_IN_PX
+    inside = dr < -s.rim_band_in_px
     faces_down = jax.nn.sigmoid((outline.ny - 0.3) / 0.1)
-    soil_below = jnp.exp(-outline.wheel_below_px / WHEEL_BELOW_SCALE_PX)
+    soil_below = jnp.exp(-outline.wheel_below_px / s.wheel_below_scale_px)
     # Non-maximum suppression leaves one point per column on gentle edges and one per row on
     # steep ones; re-weight to one per unit x so the fit matches Eq. 1 on the true curve.
     per_x = jnp.minimum(1.0, jnp.abs(outline.ny) / jnp.maximum(jnp.abs(outline.nx), 1e-3))
@@ -71,12 +72,12 @@ def build_evidence(outline: Outline, circle: Circle, sign: float) -> Evidence:
 
     # The ends' tangents come from boundary points clear of the corner where the soil edge meets
     # the rim edge (smoothing rounds that corner over a few pixels and would bend them upward).
-    clear = dr < -END_CLEARANCE_PX
+    clear = dr < -s.end_clearance_px
     w_end = w_line * clear
     present = w_end > 0.5 * jnp.max(w_end)
     i_a = jnp.argmax(jnp.where(present, u, -jnp.inf))
     i_b = jnp.argmin(jnp.where(present, u, jnp.inf))
-    win = end_window_px(circle.r_px)
+    win = end_window_px(circle.r_px, s)
     near_a = jnp.hypot(u - u[i_a], v - v[i_a]) < win
     near_b = jnp.hypot(u - u[i_b], v - v[i_b]) < win
     w_a = w_end * near_a
@@ -104,6 +105,7 @@ def build_evidence(outline: Outline, circle: Circle, sign: float) -> Evidence:
         w_b=w_b,
         sign=jnp.asarray(sign, dt),
         start=start,
+        settings=s,
     )
 
 

@@ -17,8 +17,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .outline import Outline
-
-CENTRE_BIN_PX = 4
+from .settings import SoftSettings
 
 
 class Circle(eqx.Module):
@@ -48,31 +47,32 @@ def _kasa(x: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
     return cx + xm, cy + ym, r
 
 
-def hough_rim(outline: Outline, height: int, width: int) -> Circle:
+def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings) -> Circle:
     """Initial rim circle (image pixels). ``height``/``width`` are static."""
     dt = outline.x_px.dtype
+    bin_px = settings.centre_bin_px
     r_min, r_max = radius_range_px(height, width)
     # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin of the
     # true centre for the nearest candidate (coarser steps smear the votes into a ring).
-    n_radii = int(np.ceil((r_max - r_min) / CENTRE_BIN_PX)) + 1
+    n_radii = int(np.ceil((r_max - r_min) / bin_px)) + 1
     radii = jnp.linspace(r_min, r_max, n_radii, dtype=dt)
     # Only edges with non-wheel beyond them can be the rim (or lug tips).
     w = outline.weight * jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     # Centre votes: p - n r (the normal points outwards on the rim).
     vx = outline.x_px[:, None] - outline.nx[:, None] * radii[None]
     vy = outline.y_px[:, None] - outline.ny[:, None] * radii[None]
-    bw = (width + CENTRE_BIN_PX - 1) // CENTRE_BIN_PX
-    bh = (height + CENTRE_BIN_PX - 1) // CENTRE_BIN_PX
-    ix = jnp.floor(vx / CENTRE_BIN_PX).astype(jnp.int32)
-    iy = jnp.floor(vy / CENTRE_BIN_PX).astype(jnp.int32)
+    bw = (width + bin_px - 1) // bin_px
+    bh = (height + bin_px - 1) // bin_px
+    ix = jnp.floor(vx / bin_px).astype(jnp.int32)
+    iy = jnp.floor(vy / bin_px).astype(jnp.int32)
     inside = (ix >= 0) & (ix < bw) & (iy >= 0) & (iy < bh)
     lin = jnp.where(inside, iy * bw + ix, 0)
     acc = jnp.zeros(bh * bw, dt).at[lin.ravel()].add((w[:, None] * inside).ravel())
     acc = acc.reshape(bh, bw)
     acc = jax.lax.reduce_window(acc, 0.0, jax.lax.add, (3, 3), (1, 1), "SAME")
     best = jnp.argmax(acc)
-    cx = ((best % bw + 0.5) * CENTRE_BIN_PX).astype(dt)
-    cy = ((best // bw + 0.5) * CENTRE_BIN_PX).astype(dt)
+    cx = ((best % bw + 0.5) * bin_px).astype(dt)
+    cy = ((best // bw + 0.5) * bin_px).astype(dt)
 
     def histogram(cx: Array, cy: Array) -> tuple[Array, Array]:
         dx, dy = outline.x_px - cx, outline.y_px - cy

@@ -21,22 +21,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..geometry import entry_angle_rad, exit_angle_rad, sinkage_px
+from .settings import SoftSettings
 
 N_PARAMS = 9
 PARAM_NAMES = ("cx", "cy", "r", "k", "b", "alpha_a", "c_a", "alpha_b", "c_b")
-RIM_LOSS_SCALE_PX = 1.0
-# Each end line's angle is pulled towards the equivalent line's with the weight of this many
-# boundary points at the end window's length: nothing when the window is well populated, but a
-# short window (shallow sinkage) no longer swings the end around.
-END_ANGLE_PRIOR_POINTS = 2.0
-END_LEVER_PX = 10.0
-# Likewise each end line's offset, with a twentieth of a point's weight: an end with no points
-# of its own (the boundary never gets clear of the rim: very shallow contact) becomes the
-# equivalent line, not a line held by nothing whose rim intersection has unbounded variance.
-END_OFFSET_PRIOR_POINTS = 0.05
-# Tiny pull towards the starting point: keeps the normal equations regular when a group has no
-# points (no contact: no boundary, so no line) without moving well-determined parameters.
-PRIOR_WEIGHT = 1e-4
 
 
 class Evidence(eqx.Module):
@@ -50,9 +38,11 @@ class Evidence(eqx.Module):
     w_b: Float[Array, " K"]
     sign: Float[Array, ""]  # +1 travel right, -1 travel left
     start: Float[Array, " 9"]
+    # The loss scale and priors (``SoftSettings``); fixed during the solve, differentiable.
+    settings: SoftSettings = eqx.field(default_factory=SoftSettings)
 
 
-def _welsch(res: Array, scale: float) -> Array:
+def _welsch(res: Array, scale: Array) -> Array:
     # sqrt of Welsch's rho, signed: ~res for small res, -> bounded for large ones. Written as
     # res * sqrt(f(u)) with f(u) = (1 - exp(-u)) / u so that it is smooth (no sqrt at 0).
     u = 0.5 * (res / scale) ** 2
@@ -76,20 +66,22 @@ def wheel_frame(
 
 def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
     """Weighted residuals; weighted groups share slots where their members are disjoint."""
+    s = ev.settings.astype(p.dtype)
     u, v = wheel_frame(p, ev)
     d = jnp.sqrt(u * u + v * v + 1e-12)
-    rim = _sqrt_weight(ev.w_rim) * _welsch(d - p[2], RIM_LOSS_SCALE_PX)
+    rim = _sqrt_weight(ev.w_rim) * _welsch(d - p[2], s.rim_loss_scale_px)
     line = _sqrt_weight(ev.w_line) * (v - p[3] * u - p[4])
     end_a = _sqrt_weight(ev.w_a) * (-jnp.sin(p[5]) * u + jnp.cos(p[5]) * v - p[6])
     end_b = _sqrt_weight(ev.w_b) * (-jnp.sin(p[7]) * u + jnp.cos(p[7]) * v - p[8])
-    prior = jnp.sqrt(PRIOR_WEIGHT) * (p - ev.start)
+    prior = jnp.sqrt(s.prior_weight) * (p - ev.start)
     line_angle = jnp.arctan(p[3])
-    lever = jnp.sqrt(END_ANGLE_PRIOR_POINTS) * END_LEVER_PX
+    lever = jnp.sqrt(s.end_angle_prior_points) * s.end_lever_px
     line_offset = p[4] * jnp.cos(line_angle)
     end_prior = jnp.concatenate(
         [
             lever * jnp.stack([p[5] - line_angle, p[7] - line_angle]),
-            jnp.sqrt(END_OFFSET_PRIOR_POINTS) * jnp.stack([p[6] - line_offset, p[8] - line_offset]),
+            jnp.sqrt(s.end_offset_prior_points)
+            * jnp.stack([p[6] - line_offset, p[8] - line_offset]),
         ]
     )
     # rim and line members are disjoint (outside / inside the rim), so are the two end windows.

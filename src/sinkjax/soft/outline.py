@@ -17,12 +17,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .segmentation import smooth
+from .settings import SoftSettings
 
 # A ridge must be at least this strong (mask units per pixel) to count as an edge point at all;
-# the soft weight then ramps up around EDGE_LEVEL.
+# the soft weight then ramps up around ``SoftSettings.edge_level``.
 _EDGE_MIN = 0.03
-EDGE_LEVEL = 0.08
-EDGE_SOFTNESS = 0.02
 
 
 class Outline(eqx.Module):
@@ -68,8 +67,11 @@ def _compact(flags: Bool[Array, " N"], size: int) -> tuple[Array, Array]:
     return idx[:size], pos[-1] + 1
 
 
-def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> Outline:
+def extract_outline(
+    mask: Float[Array, "H W"], settings: SoftSettings, capacity: int | None = None
+) -> Outline:
     """Sub-pixel outline points of a soft mask. ``capacity`` is static."""
+    s = settings.astype(mask.dtype)
     height, width = mask.shape
     k = default_capacity(height, width) if capacity is None else capacity
     m = smooth(mask)
@@ -136,7 +138,7 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     # Normal from wheel (high mask) to non-wheel: minus the gradient.
     nx = -g_x / norm
     ny = -g_y / norm
-    weight = jnp.where(valid, jax.nn.sigmoid((e0 - EDGE_LEVEL) / EDGE_SOFTNESS), 0.0)
+    weight = jnp.where(valid, jax.nn.sigmoid((e0 - s.edge_level) / s.edge_softness), 0.0)
     # Wheel mass strictly below each pixel in its column, starting 3 px down (past the edge's
     # own blur): a wheel-soil boundary point has ~0, the top edge of a hole has a lot.
     solid = jax.nn.sigmoid((m - 0.5) / 0.1)
@@ -159,15 +161,14 @@ def extract_outline(mask: Float[Array, "H W"], capacity: int | None = None) -> O
     )
 
 
-REFINE_HALF_WIDTH_PX = 3.0
-REFINE_STEP_PX = 0.5
 # Luma and the two chroma axes (BT.601). Video and JPEG keep luma at full resolution but halve
 # chroma, so chroma edges are smeared: the profile leans on luma where luma has contrast.
 _YCC = ((0.299, 0.587, 0.114), (-0.169, -0.331, 0.5), (0.5, -0.419, -0.081))
-CHROMA_WEIGHT = 0.25
 
 
-def refine_outline(image: Float[Array, "H W 3"], outline: Outline) -> Outline:
+def refine_outline(
+    image: Float[Array, "H W 3"], outline: Outline, settings: SoftSettings
+) -> Outline:
     """Move each outline point along its normal to where the image is halfway between its sides.
 
     The mask finds edges but is a poor ruler: a hue/saturation threshold on a blurred or JPEG-ed
@@ -178,7 +179,8 @@ def refine_outline(image: Float[Array, "H W 3"], outline: Outline) -> Outline:
     window is the distance from the window's start to the edge, for any symmetric blur. That
     integral is linear in the pixels (noise averages out) and differentiable.
     """
-    half, step = REFINE_HALF_WIDTH_PX, REFINE_STEP_PX
+    half, step = settings.refine_half_width_px, settings.refine_step_px
+    chroma = settings.astype(image.dtype).chroma_weight
     ts = jnp.arange(-half, half + 0.5 * step, step, dtype=image.dtype)
     px = outline.x_px[:, None] + ts[None] * outline.nx[:, None]
     py = outline.y_px[:, None] + ts[None] * outline.ny[:, None]
@@ -191,7 +193,7 @@ def refine_outline(image: Float[Array, "H W 3"], outline: Outline) -> Outline:
     )
     ycc = (
         jnp.asarray(_YCC, image.dtype)
-        * jnp.asarray([1.0, CHROMA_WEIGHT, CHROMA_WEIGHT], image.dtype)[:, None]
+        * jnp.stack([jnp.ones((), image.dtype), chroma, chroma])[:, None]
     )
     samples = samples @ ycc.T
     c_in = jnp.mean(samples[:, :3], axis=1)
