@@ -19,6 +19,7 @@ from ..geometry import from_wheel_frame, travel_sign
 from ..result import FrameResult, Overlay, failed, no_contact
 from ..rig import Rig, SegmentationParams, rect_problem
 from ..status import Status
+from .checks import message as check_message, plausibility
 from .fit import build_evidence, fit
 from .hough import hough_rim
 from .model import end_point, measurements
@@ -52,6 +53,7 @@ class SoftEstimate(eqx.Module):
     boundary_weight: Float[Array, " K"]
     boundary_x_px: Float[Array, " K"]
     boundary_y_px: Float[Array, " K"]
+    check: Int[Array, ""]  # soft.checks: 0 plausible, else which test failed
 
 
 def measure(
@@ -119,15 +121,17 @@ def measure_from_mask(
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
-    std = measurement_std(p, cov, wheel_radius_mm, uncertainty)
     contact = jnp.sum(ev.w_line) >= s.min_boundary_points
+    check = plausibility(image, mask, p, ev, contact)
+    std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
+    measured = jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code)
     status = jnp.where(
         circle.support < s.min_rim_support,
         Status.NO_WHEEL.code,
         jnp.where(
             ~res.ok,
             Status.FIT_FAILED.code,
-            jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code),
+            jnp.where(check.plausible, measured, Status.IMPLAUSIBLE.code),
         ),
     )
     zero_if_no_contact = jnp.where(contact, 1.0, 0.0)
@@ -144,6 +148,7 @@ def measure_from_mask(
         boundary_weight=ev.w_line,
         boundary_x_px=ev.x_px,
         boundary_y_px=ev.y_px,
+        check=check.code,
     )
 
 
@@ -272,6 +277,8 @@ def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig) -> FrameResult:
     )
     if status == Status.NO_CONTACT:
         return no_contact(name, (cx, cy), r, overlay)
+    # An implausible frame keeps its numbers (for review) under a non-ok status and its reason.
+    why = check_message(int(out.check[i])) if status == Status.IMPLAUSIBLE else ""
     return FrameResult(
         image=name,
         status=status,
@@ -285,4 +292,5 @@ def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig) -> FrameResult:
         center_y_px=cy,
         radius_px=r,
         overlay=overlay,
+        message=why,
     )

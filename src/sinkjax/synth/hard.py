@@ -10,8 +10,8 @@ more saturated than the soil), strong specular highlights on the wheel, and per 
   towards it (the hue gap between wheel and soil shrinks to a few tens of degrees);
 - ``hard_shading``: strong one-sided shading (the far side of the face near black), a white lamp
   glow on the near side and a dark cast shadow on the soil;
-- ``hard_lowlight``: 10-20 % exposure, a black-level pedestal and heavy sensor noise;
-- ``hard_mix``: all of the above at somewhat milder strengths, together.
+- ``hard_lowlight``: 12-25 % exposure, a black-level pedestal and heavy sensor noise;
+- ``hard_mix``: two of the above, drawn per set-up, at slightly milder strengths.
 
 Recordings of hard presets add the ``hollow_ahead`` terrain to the cycle: a hollow behind the
 wheel's lowest point, so the soil touches only the entry half of the rim and B lies ahead of O
@@ -85,31 +85,34 @@ def harden(rng: np.random.Generator, base: Scene, preset: str) -> Scene:
     spec = []
     for _ in range(int(rng.integers(3, 9))):
         rr, aa = r * 0.9 * math.sqrt(u(0, 1)), u(0, 2 * math.pi)
-        spec.append((rr * math.cos(aa), rr * math.sin(aa), u(2.0, max(3.0, 0.08 * r)), u(0.6, 1.2)))
+        spec.append((rr * math.cos(aa), rr * math.sin(aa), u(2.0, max(3.0, 0.08 * r)), u(0.4, 0.9)))
     kw["specular"] = tuple(spec)
-    mix = preset == "hard_mix"
-    f = 0.75 if mix else 1.0  # the mix combines everything at milder strengths
-    if preset == "hard_dust" or mix:
-        kw["dust"], kw["dust_top_frac"] = f * u(0.8, 0.97), u(0.0, 0.25)
-    if preset == "hard_cast" or mix:
+    effects = ("hard_dust", "hard_cast", "hard_shading", "hard_lowlight")
+    mixed = (
+        set(rng.choice(effects, size=2, replace=False).tolist()) if preset == "hard_mix" else set()
+    )
+    f = 0.85 if mixed else 1.0  # the mix combines two effects at slightly milder strengths
+    if preset == "hard_dust" or "hard_dust" in mixed:
+        kw["dust"], kw["dust_top_frac"] = f * u(0.65, 0.9), u(0.05, 0.3)
+    if preset == "hard_cast" or "hard_cast" in mixed:
         c = np.asarray(_hsv(hue, 1.0, 1.0))
         d = 2 * c - 1 - (2 * c - 1).mean()
-        kw["cast_rgb"] = tuple(float(g) for g in 1 + f * u(0.35, 0.6) * d)
-    if preset == "hard_shading" or mix:
+        kw["cast_rgb"] = tuple(float(g) for g in 1 + f * u(0.2, 0.35) * d)
+    if preset == "hard_shading" or "hard_shading" in mixed:
         lx, ly = base.light_dir
         off = u(0.15, 0.35) * r
         kw.update(
-            shading=f * u(0.9, 1.3),
-            lamp_white=f * u(0.5, 0.9),
+            shading=f * u(0.7, 1.0),
+            lamp_white=f * u(0.4, 0.7),
             shadow_factor=1 - f * u(0.55, 0.8),
             shadow_offset_px=(-lx * off, -ly * off),
             shadow_soft_px=u(2, 8),
         )
-    if preset == "hard_lowlight" or mix:
+    if preset == "hard_lowlight" or "hard_lowlight" in mixed:
         kw.update(
-            gain=u(0.1, 0.2) / f,
-            noise_std=f * u(5.0, 10.0),
-            black_level=f * u(8.0, 20.0),
+            gain=u(0.12, 0.25) / f,
+            noise_std=f * u(4.0, 9.0),
+            black_level=f * u(6.0, 16.0),
         )
     return replace(base, **kw)  # type: ignore[arg-type]
 
