@@ -225,7 +225,7 @@ def calibrate(
     points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
     base = rig.segmentation.as_dict()
     for combo in itertools.product(*(grid or {}).values()):
-        seg = SegmentationParams(**{**base, **dict(zip(grid or {}, combo, strict=True))})
+        seg = SegmentationParams(**{**base, **dict(zip(grid or {}, combo, strict=True))})  # type: ignore[arg-type]
         r = to_raw(seg).astype(dt)
         points.append((r, call(r)))
     n_grid = len(points)
