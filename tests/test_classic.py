@@ -23,92 +23,22 @@ from sinkjax.status import Status
 BAD_IMAGE, BAD_RECT, FIT_FAILED = Status.BAD_IMAGE, Status.BAD_RECT, Status.FIT_FAILED
 NO_CONTACT, NO_WHEEL, OK = Status.NO_CONTACT, Status.NO_WHEEL, Status.OK
 
-WHEEL_RGB = (200, 40, 35)  # red: hue straddles 0/360
-SOIL_RGB = (190, 165, 120)
-SKY_RGB = (70, 90, 130)
-HOLE_RGB = (25, 22, 24)
+# draw_wheel's (conftest) wheel colour, frame size and default rim.
+WHEEL_RGB = (200, 40, 35)
 W, H = 320, 240
+CX, CY, R_PX = 160.3, 100.6, 85.4
 R_MM = 140.0
-
-
-def draw_wheel(
-    *,
-    cx: float = 160.3,
-    cy: float = 100.6,
-    r: float = 85.4,
-    soil=lambda x: 165.2 + 0.0 * x,
-    n_lugs: int = 0,
-    lug_h: float = 0.0,
-    lug_w_frac: float = 0.35,
-    hole_r: float = 0.0,
-    n_holes: int = 0,
-    ring: float = 55.0,
-    ss: int = 4,
-) -> np.ndarray:
-    """(H, W, 3) uint8: a red wheel (rim radius r, optional lugs, a ring of ``n_holes`` dark
-    lightening holes of radius ``hole_r`` at distance ``ring`` from O, or one annular cut-out
-    ``hole_r`` without ``n_holes``) behind soil y > soil(x)."""
-    xs = (np.arange(W * ss) + 0.5) / ss - 0.5
-    ys = (np.arange(H * ss) + 0.5) / ss - 0.5
-    x, y = np.meshgrid(xs, ys)
-    dx, dy = x - cx, y - cy
-    rho = np.hypot(dx, dy)
-    wheel = rho <= r
-    if n_lugs:
-        pitch = 2 * np.pi / n_lugs
-        a = (np.arctan2(dy, dx) + 0.1 + pitch / 2) % pitch - pitch / 2
-        lug = (np.abs(rho * np.sin(a)) <= lug_w_frac * pitch * r / 2) & (np.cos(a) > 0)
-        wheel |= (rho <= r + lug_h) & lug
-    holes = np.zeros_like(wheel)
-    if hole_r and not n_holes:
-        wheel &= ~((rho < hole_r) & (rho > 0.5 * hole_r))
-    for k in range(n_holes):
-        ang = 0.3 + 2 * np.pi * k / n_holes
-        holes |= np.hypot(x - cx - ring * np.cos(ang), y - cy - ring * np.sin(ang)) < hole_r
-    img = np.empty((*x.shape, 3))
-    img[:] = SKY_RGB
-    img[wheel] = WHEEL_RGB
-    img[wheel & holes] = HOLE_RGB
-    img[y > soil(x)] = SOIL_RGB
-    img = img.reshape(H, ss, W, ss, 3).mean(axis=(1, 3))
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
 def rig(travel: str = "right", rect=(150, 30, 24, 12)) -> Rig:
     return Rig(wheel_radius_mm=R_MM, confidence_rect=rect, travel=travel)
 
 
-def line_truth(cx, cy, r, y0, slope):
-    """Exact z0 (px), theta1, theta2 (deg) for soil y = y0 + slope (x - cx), travel right."""
-    # Line in the O frame: v = slope u + (y0 - cy); intersections with u^2 + v^2 = r^2.
-    k, b = slope, y0 - cy
-    d = abs(b) / math.hypot(k, 1.0)
-    qa, qb, qc = 1 + k * k, 2 * k * b, b * b - r * r
-    disc = math.sqrt(qb * qb - 4 * qa * qc)
-    ua, ub = (-qb + disc) / (2 * qa), (-qb - disc) / (2 * qa)
-    t1 = math.pi / 2 - math.atan((k * ua + b) / ua)
-    t2 = math.pi / 2 + math.atan((k * ub + b) / ub)
-    return r - d, math.degrees(t1), math.degrees(t2)
-
-
 # --------------------------------------------------------------------------------------------
 # Colour
 
 
-def _hsi_reference(r: float, g: float, b: float) -> tuple[float, float, float]:
-    num = 0.5 * ((r - g) + (r - b))
-    den = math.sqrt((r - g) ** 2 + (r - b) * (g - b))
-    if den == 0.0:
-        h = 0.0
-    else:
-        theta = math.degrees(math.acos(max(-1.0, min(1.0, num / den))))
-        h = theta if b <= g else 360.0 - theta
-    total = r + g + b
-    s = 0.0 if total == 0 else 1.0 - 3.0 * min(r, g, b) / total
-    return h % 360.0, s, total / 3.0
-
-
-def test_hsi_matches_per_pixel_reference():
+def test_hsi_matches_per_pixel_reference(hsi_reference):
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, size=(12, 17, 3), dtype=np.uint8)
     img[0, :3] = [[0, 0, 0], [128, 128, 128], [255, 255, 255]]
@@ -116,7 +46,7 @@ def test_hsi_matches_per_pixel_reference():
     assert h.dtype == s.dtype == i.dtype == np.float64
     for row in range(img.shape[0]):
         for col in range(img.shape[1]):
-            ref = _hsi_reference(*(float(v) / 255.0 for v in img[row, col]))
+            ref = hsi_reference(*(float(v) / 255.0 for v in img[row, col]))
             got = (h[row, col], s[row, col], i[row, col])
             # Hue differences across 0/360 are the same angle.
             dh = (got[0] - ref[0] + 180.0) % 360.0 - 180.0
@@ -169,7 +99,7 @@ def test_confidence_means_rejects_rect_off_image(rect):
         confidence_means_np(np.zeros((1, 4)), np.zeros((1, 4)), rect)
 
 
-def test_hard_mask_on_red_wheel():
+def test_hard_mask_on_red_wheel(draw_wheel):
     img = draw_wheel(ss=1)
     h, s, _ = rgb_to_hsi_np(img)
     h_w, s_w = confidence_means_np(h, s, (150, 60, 24, 18))
@@ -217,7 +147,6 @@ def test_rim_points_keep_rim_drop_lug_tips_and_flanks():
 # --------------------------------------------------------------------------------------------
 # Hough and the whole pipeline on drawn wheels
 
-CX, CY, R_PX = 160.3, 100.6, 85.4  # draw_wheel's defaults
 STRAIGHT_SOILS = [(165.2, 0.0), (150.7, 0.0), (160.4, 0.15), (170.9, -0.1)]
 
 
@@ -243,7 +172,7 @@ def test_hough_spans_the_whole_plausible_radius_range():
 
 @pytest.mark.parametrize(("n_lugs", "lug_h"), [(0, 0.0), (24, 8.0), (30, 3.0), (12, 8.5)])
 @pytest.mark.parametrize("refine", [False, True])
-def test_hough_finds_rim_not_lug_tips(n_lugs, lug_h, refine):
+def test_hough_finds_rim_not_lug_tips(n_lugs, lug_h, refine, draw_wheel):
     res = estimate_classic(
         draw_wheel(n_lugs=n_lugs, lug_h=lug_h, hole_r=40.0), rig(), refine=refine
     )
@@ -258,7 +187,7 @@ def test_hough_finds_rim_not_lug_tips(n_lugs, lug_h, refine):
     )
 
 
-def test_default_is_the_papers_method():
+def test_default_is_the_papers_method(draw_wheel):
     img = draw_wheel(soil=straight_soil(160.4, 0.15), n_lugs=20, lug_h=6.0)
     default, paper = estimate_classic(img, rig()), estimate_classic(img, rig(), refine=False)
     assert (default.sinkage_mm, default.theta1_deg, default.theta2_deg) == (
@@ -272,7 +201,7 @@ def test_default_is_the_papers_method():
 
 @pytest.mark.parametrize(("y0", "slope"), STRAIGHT_SOILS)
 @pytest.mark.parametrize("travel", ["right", "left"])
-def test_papers_method_on_straight_soil(y0, slope, travel):
+def test_papers_method_on_straight_soil(y0, slope, travel, draw_wheel, line_truth):
     img = draw_wheel(soil=straight_soil(y0, slope), n_lugs=20, lug_h=6.0)
     res = estimate_classic(img, rig(travel))
     assert res.status == OK, res.message
@@ -305,7 +234,7 @@ def test_papers_method_on_straight_soil(y0, slope, travel):
 
 @pytest.mark.parametrize(("y0", "slope"), STRAIGHT_SOILS)
 @pytest.mark.parametrize("travel", ["right", "left"])
-def test_refined_straight_soil_matches_analytic(y0, slope, travel):
+def test_refined_straight_soil_matches_analytic(y0, slope, travel, draw_wheel, line_truth):
     img = draw_wheel(soil=straight_soil(y0, slope), n_lugs=20, lug_h=6.0)
     res = estimate_classic(img, rig(travel), refine=True)
     assert res.status == OK, res.message
@@ -328,7 +257,7 @@ def test_refined_straight_soil_matches_analytic(y0, slope, travel):
 
 
 @pytest.mark.parametrize("y0", [155.3, 160.0])
-def test_lightening_holes_cut_by_the_soil(y0):
+def test_lightening_holes_cut_by_the_soil(y0, draw_wheel, line_truth):
     # The soil line crosses the lowest of six holes. The paper's method leaves it open: its
     # outline, above the soil line, counts as wheel-soil boundary and lifts the equivalent line
     # (4-8 % too much sinkage here). The refinement fills it from the intact holes' pattern.
@@ -344,7 +273,7 @@ def test_lightening_holes_cut_by_the_soil(y0):
     assert res.theta2_deg == pytest.approx(t2, abs=0.3)
 
 
-def test_boundary_equations_compile_once_per_bucket():
+def test_boundary_equations_compile_once_per_bucket(draw_wheel):
     # Eqs. 1-3 run jitted on boundaries padded to a power of two: 3 soil levels -> 1-2 compiles.
     cache_size = _geometry_padded._cache_size  # type: ignore[attr-defined]
     before = cache_size()
@@ -354,14 +283,14 @@ def test_boundary_equations_compile_once_per_bucket():
 
 
 @pytest.mark.parametrize("refine", [False, True])
-def test_no_contact(refine):
+def test_no_contact(refine, draw_wheel):
     res = estimate_classic(draw_wheel(soil=lambda x: 200.0 + 0.0 * x), rig(), refine=refine)
     assert res.status == NO_CONTACT and res.message
     assert res.sinkage_mm == 0.0 and res.theta1_deg == 0.0 and res.theta2_deg == 0.0
     assert res.radius_px == pytest.approx(R_PX, abs=0.6)
 
 
-def test_face_torn_above_the_centre():
+def test_face_torn_above_the_centre(draw_wheel):
     # A washed-out patch on the upper rim (a lamp's glare) makes the outline dip inside the rim
     # above O; that is never soil. The refinement fails the frame instead of reporting a wrong
     # number; the paper's method has no such check and takes the dip for boundary.
@@ -377,12 +306,12 @@ def test_face_torn_above_the_centre():
     assert paper.overlay.boundary_px[:, 1].min() < paper.center_y_px
 
 
-def test_bad_rect():
+def test_bad_rect(draw_wheel):
     res = estimate_classic(draw_wheel(ss=1), rig(rect=(310, 60, 24, 18)))
     assert res.status == BAD_RECT and "inside" in res.message
 
 
-def test_no_wheel():
+def test_no_wheel(draw_wheel):
     grey = np.full((H, W, 3), 120, np.uint8)
     res = estimate_classic(grey, rig())
     assert res.status == NO_WHEEL and res.message
@@ -391,7 +320,7 @@ def test_no_wheel():
     assert res.status not in (OK, NO_CONTACT) and res.message
 
 
-def test_never_raises_on_bad_content():
+def test_never_raises_on_bad_content(draw_wheel):
     rng = np.random.default_rng(1)
     images = [
         rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8),

@@ -21,7 +21,7 @@ RIG_FLAGS = ["--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]
 
 
 @pytest.fixture
-def fake(monkeypatch):
+def fake(use_method):
     """Replace both methods by a fake that records the rig and names it was given."""
 
     class Fake:
@@ -48,8 +48,7 @@ def fake(monkeypatch):
             ]
 
     f = Fake()
-    monkeypatch.setitem(_pipeline._LOADERS, "classic", lambda: f)
-    monkeypatch.setitem(_pipeline._LOADERS, "soft", lambda: f)
+    use_method(f)
     return f
 
 

@@ -30,16 +30,6 @@ def write_rgb(path: Path, rgb: np.ndarray) -> Path:
     return path
 
 
-def write_video(path: Path, n: int, size: tuple[int, int] = (32, 24)) -> Path:
-    fourcc = "MJPG" if path.suffix == ".avi" else "mp4v"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 5, size)
-    assert writer.isOpened()
-    for i in range(n):
-        writer.write(np.full((size[1], size[0], 3), 40 * i, np.uint8))
-    writer.release()
-    return path
-
-
 # --- pixel conversions -------------------------------------------------------------------------
 
 
@@ -131,7 +121,7 @@ def test_truncated_png_and_jpeg(tmp_path):
 # --- PATH expansion ----------------------------------------------------------------------------
 
 
-def test_expand_paths_order_and_names(tmp_path, monkeypatch):
+def test_expand_paths_order_and_names(tmp_path, monkeypatch, write_video):
     monkeypatch.chdir(tmp_path)
     d = tmp_path / "rec"
     d.mkdir()
@@ -167,7 +157,7 @@ def test_expand_paths_errors(tmp_path):
         expand_paths([str(tmp_path / "empty")])
 
 
-def test_video_frames_streamed_and_named(tmp_path):
+def test_video_frames_streamed_and_named(tmp_path, write_video):
     for ext in ("avi", "mp4"):
         v = write_video(tmp_path / f"clip.{ext}", 3)
         frames = list(iter_frames(expand_paths([str(v)]).sources))
@@ -225,16 +215,16 @@ def test_rig_from_directory_and_overrides(tmp_path):
 
 
 def test_rig_from_flags_only_and_errors(tmp_path):
-    rig = resolve_rig(None, wheel_radius_mm=120, confidence_rect=(0, 0, 5, 5))
+    rig = resolve_rig(None, wheel_radius_mm=120.0, confidence_rect=(0, 0, 5, 5))
     assert rig.wheel_radius_mm == 120.0 and rig.travel == "right"
     with pytest.raises(RigError) as e:
         resolve_rig(None)
     for needed in ("--rig", "--wheel-radius-mm", "--confidence-rect", "rig.toml"):
         assert needed in str(e.value)
     with pytest.raises(RigError, match="confidence_rect"):
-        resolve_rig(None, wheel_radius_mm=120)
+        resolve_rig(None, wheel_radius_mm=120.0)
     with pytest.raises(RigError, match="wheel_radius_mm must be a positive"):
-        resolve_rig(None, wheel_radius_mm=-1, confidence_rect=(0, 0, 5, 5))
+        resolve_rig(None, wheel_radius_mm=-1.0, confidence_rect=(0, 0, 5, 5))
     with pytest.raises(RigError, match="does not exist"):
         resolve_rig(None, rig_path=tmp_path / "missing.toml")
 
@@ -441,3 +431,29 @@ def test_estimate_paths_finds_rig_in_directory(tmp_path):
     write_rgb(bare / "c.png", rgb_image())
     with pytest.raises(RigError, match="no rig"):
         estimate_paths([str(bare / "c.png")], method=FakeMethod())
+
+
+def test_estimate_paths_on_a_synthetic_recording(synthetic_recording):
+    """A rendered recording through the real classic method: its rig.toml is found, every frame
+    has a row in order, each row is what the method gives on that frame read directly, and the
+    rows are near the recording's truth.csv (conventions §4)."""
+    from sinkjax.classic.estimator import estimate_classic
+    from sinkjax.rig import load_rig
+
+    rec = synthetic_recording()
+    results = list(estimate_paths([str(rec)], method="classic"))
+    with open(rec / "truth.csv", newline="") as f:
+        truth = list(csv.DictReader(f))
+    assert [Path(r.image).name for r in results] == [t["image"] for t in truth]
+    rig = load_rig(rec / "rig.toml")
+    for row, t in zip(results, truth, strict=True):
+        direct = estimate_classic(read_image(rec / t["image"]), rig)
+        assert (row.status, row.sinkage_mm, row.theta1_deg) == (
+            direct.status,
+            direct.sinkage_mm,
+            direct.theta1_deg,
+        )
+        assert row.status in ("ok", "no_contact"), row.message
+        if row.status == "ok":
+            # The paper's integer-pixel method on 160x120 frames: within ~15 % of the truth.
+            assert row.sinkage_mm == pytest.approx(float(t["sinkage_mm"]), rel=0.15, abs=1.0)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import functools
 import os
 import signal
 import subprocess
@@ -16,7 +17,6 @@ import cv2
 import numpy as np
 import pytest
 
-from sinkjax.app import pipeline as _pipeline
 from sinkjax.app.cli import main
 from sinkjax.app.frames import FrameSelection, count_frames, iter_frames
 from sinkjax.app.results import COLUMNS
@@ -68,24 +68,16 @@ class Interrupting:
 
 
 @pytest.fixture
-def method(monkeypatch):
-    """Install a method for both names; returns a setter."""
-
-    def use(fn) -> None:
-        monkeypatch.setitem(_pipeline._LOADERS, "classic", lambda: fn)
-        monkeypatch.setitem(_pipeline._LOADERS, "soft", lambda: fn)
-
-    use(fake_rows)
-    return use
+def method(use_method):
+    """The fake method under both names; returns the setter for another one."""
+    use_method(fake_rows)
+    return use_method
 
 
-def write_video(path: Path, n: int, size: tuple[int, int] = (32, 24), fps: float = 5) -> Path:
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
-    assert writer.isOpened()
-    for i in range(n):
-        writer.write(np.full((size[1], size[0], 3), (9 * i) % 250, np.uint8))
-    writer.release()
-    return path
+@pytest.fixture
+def write_video(write_video):
+    """conftest's video writer with levels 9 i mod 250: fake_rows fails one level in 7."""
+    return functools.partial(write_video, step=9)
 
 
 def images_dir(path: Path, n: int) -> Path:
@@ -103,7 +95,9 @@ def names(csv_path: Path) -> list[str]:
 # --- frame selection ---------------------------------------------------------------------------
 
 
-def test_start_stop_stride_on_videos_and_image_sequences(tmp_path, monkeypatch, method):
+def test_start_stop_stride_on_videos_and_image_sequences(
+    tmp_path, monkeypatch, method, write_video
+):
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 10)
     images_dir(tmp_path / "ims", 4)
@@ -137,7 +131,9 @@ def test_start_stop_stride_on_videos_and_image_sequences(tmp_path, monkeypatch, 
         (["--smooth", "--process-std-mm", "-1"], "--process-std-mm must be a number >= 0"),
     ],
 )
-def test_bad_long_run_flags_exit_2(tmp_path, monkeypatch, method, capsys, flags, needle):
+def test_bad_long_run_flags_exit_2(
+    tmp_path, monkeypatch, method, capsys, flags, needle, write_video
+):
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 4)
     assert main(["estimate", "v.mp4", *RIG_FLAGS, *flags]) == 2
@@ -148,7 +144,7 @@ def test_bad_long_run_flags_exit_2(tmp_path, monkeypatch, method, capsys, flags,
 # --- resume ------------------------------------------------------------------------------------
 
 
-def _recording(tmp_path: Path) -> list[str]:
+def _recording(tmp_path: Path, write_video) -> list[str]:
     write_video(tmp_path / "v.mp4", 23)
     images_dir(tmp_path / "ims", 5)
     (tmp_path / "ims" / "im_03.png").write_bytes(b"")  # an unreadable frame on the way
@@ -157,9 +153,11 @@ def _recording(tmp_path: Path) -> list[str]:
 
 @pytest.mark.parametrize("extra", [[], ["--batch-size", "3", "--method", "soft", "--smooth"]])
 @pytest.mark.parametrize("after", [0, 1, 11, 26])
-def test_interrupted_then_resumed_is_byte_identical(tmp_path, monkeypatch, method, extra, after):
+def test_interrupted_then_resumed_is_byte_identical(
+    tmp_path, monkeypatch, method, extra, after, write_video
+):
     monkeypatch.chdir(tmp_path)
-    paths = _recording(tmp_path)
+    paths = _recording(tmp_path, write_video)
     flags = [*RIG_FLAGS, "--stride", "1", *extra]
     assert main(["estimate", *paths, *flags, "--out", "full.csv"]) == 0
     full = (tmp_path / "full.csv").read_bytes()
@@ -180,9 +178,11 @@ def test_interrupted_then_resumed_is_byte_identical(tmp_path, monkeypatch, metho
     assert part.read_bytes() == full
 
 
-def test_resume_cuts_a_half_written_row_and_keeps_one_header(tmp_path, monkeypatch, method):
+def test_resume_cuts_a_half_written_row_and_keeps_one_header(
+    tmp_path, monkeypatch, method, write_video
+):
     monkeypatch.chdir(tmp_path)
-    paths = _recording(tmp_path)
+    paths = _recording(tmp_path, write_video)
     assert main(["estimate", *paths, *RIG_FLAGS, "--out", "full.csv"]) == 0
     full = (tmp_path / "full.csv").read_bytes()
     lines = full.splitlines(keepends=True)
@@ -199,7 +199,9 @@ def test_resume_cuts_a_half_written_row_and_keeps_one_header(tmp_path, monkeypat
     assert (tmp_path / "empty.csv").read_bytes() == full
 
 
-def test_resume_refuses_a_file_that_is_not_a_results_csv(tmp_path, monkeypatch, method, capsys):
+def test_resume_refuses_a_file_that_is_not_a_results_csv(
+    tmp_path, monkeypatch, method, capsys, write_video
+):
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 3)
     other = tmp_path / "labels.csv"
@@ -227,7 +229,7 @@ _KILLABLE = textwrap.dedent(
 )
 
 
-def test_killed_process_resumed_is_byte_identical(tmp_path, monkeypatch, method):
+def test_killed_process_resumed_is_byte_identical(tmp_path, monkeypatch, method, write_video):
     """SIGKILL (no chance to clean up) after a few rows, then --resume."""
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 60)
@@ -263,7 +265,7 @@ def test_killed_process_resumed_is_byte_identical(tmp_path, monkeypatch, method)
 # --- overlay video, smoothing, plots -----------------------------------------------------------
 
 
-def test_overlay_video_has_one_frame_per_row(tmp_path, monkeypatch, method):
+def test_overlay_video_has_one_frame_per_row(tmp_path, monkeypatch, method, write_video):
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 6, fps=12)
     (tmp_path / "bad.png").write_bytes(b"")
@@ -284,7 +286,7 @@ def test_overlay_video_has_one_frame_per_row(tmp_path, monkeypatch, method):
     assert all(float(np.abs(f.astype(int) - np.median(f)).mean()) > 1 for f in frames[1:])
 
 
-def test_smooth_flag_adds_columns_only_when_asked(tmp_path, monkeypatch, method):
+def test_smooth_flag_adds_columns_only_when_asked(tmp_path, monkeypatch, method, write_video):
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 8)
     assert main(["estimate", "v.mp4", *RIG_FLAGS, "--out", "plain.csv"]) == 0
@@ -300,7 +302,7 @@ def test_smooth_flag_adds_columns_only_when_asked(tmp_path, monkeypatch, method)
     assert (tmp_path / "again.csv").read_text() == (tmp_path / "smooth.csv").read_text()
 
 
-def test_plot_command(tmp_path, monkeypatch, method, capsys):
+def test_plot_command(tmp_path, monkeypatch, method, capsys, write_video):
     monkeypatch.chdir(tmp_path)
     write_video(tmp_path / "v.mp4", 12)
     assert main(["estimate", "v.mp4", *RIG_FLAGS]) == 0
@@ -316,7 +318,7 @@ def test_plot_command(tmp_path, monkeypatch, method, capsys):
     assert main(["plot", "missing.csv"]) == 2
 
 
-def test_soft_batches_keep_one_shape(tmp_path, monkeypatch, method):
+def test_soft_batches_keep_one_shape(tmp_path, monkeypatch, method, write_video):
     """Every call of a padding estimator gets the same batch size: one compile per image size."""
     pads: list[tuple[int, int | None]] = []
 

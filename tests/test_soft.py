@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sinkjax import synth as S
 from sinkjax.geometry import equivalent_line
 from sinkjax.rig import Rig, SegmentationParams
 from sinkjax.soft.estimator import estimate_batch, measure
@@ -19,14 +16,6 @@ from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_s
 from sinkjax.status import Status
 
 W, H = 320, 240
-
-
-@functools.cache
-def frames(preset: str, n: int = 4, seed: int = 11) -> tuple[list[np.ndarray], list[S.Truth], Rig]:
-    rng = np.random.default_rng(seed)
-    scenes = S.recording_scenes(rng, n, preset=preset, width=W, height=H)
-    rendered = [S.render(sc, seed=seed * 10 + i) for i, sc in enumerate(scenes)]
-    return [r[0] for r in rendered], [r[1] for r in rendered], S.rig_for(scenes[0])
 
 
 def run(image: np.ndarray, rig: Rig, seg: SegmentationParams | None = None):
@@ -45,8 +34,8 @@ _jit_measure = jax.jit(
 
 
 @pytest.mark.parametrize("preset", ["clean", "full"])
-def test_accuracy_on_rendered_truth(preset: str) -> None:
-    images, truths, rig = frames(preset)
+def test_accuracy_on_rendered_truth(preset: str, rendered) -> None:
+    images, truths, rig = rendered(preset)
     rows = estimate_batch(images, rig, [str(i) for i in range(len(images))])
     for row, t in zip(rows, truths, strict=True):
         if not t.contact:
@@ -67,8 +56,8 @@ def test_accuracy_on_rendered_truth(preset: str) -> None:
         assert row.sinkage_std_mm > 0 and row.theta1_std_deg > 0
 
 
-def test_jit_equals_eager_and_vmap_equals_loop() -> None:
-    images, _, rig = frames("clean", n=2)
+def test_jit_equals_eager_and_vmap_equals_loop(rendered) -> None:
+    images, _, rig = rendered("clean", n=2)
     kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
     ims = jnp.asarray(np.stack(images), jnp.float64) / 255.0
     eager = measure(ims[0], rig.segmentation, **kw)
@@ -84,8 +73,8 @@ def test_jit_equals_eager_and_vmap_equals_loop() -> None:
             )
 
 
-def test_gradients_match_finite_differences() -> None:
-    images, truths, rig = frames("full", n=3)
+def test_gradients_match_finite_differences(rendered) -> None:
+    images, truths, rig = rendered("full", n=3)
     i = next(j for j, t in enumerate(truths) if t.contact and t.sinkage_mm > 8)
     image = jnp.asarray(images[i], jnp.float64) / 255.0
     kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
@@ -192,8 +181,8 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
     )
 
 
-def test_bad_rect_rows() -> None:
-    images, _, _ = frames("clean", n=1)
+def test_bad_rect_rows(rendered) -> None:
+    images, _, _ = rendered("clean", n=1)
     bad = Rig(wheel_radius_mm=140.0, confidence_rect=(W - 5, 10, 20, 20))
     rows = estimate_batch(images, bad, ["a"])
     assert rows[0].status == "bad_rect" and "off the" in rows[0].message

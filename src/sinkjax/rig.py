@@ -17,6 +17,9 @@ from jaxtyping import Array, Float
 # H_w ~ 0 would get an empty band, at H_w ~ 359 a huge one). Using a fixed half-turn as the scale
 # keeps the paper's P_a/P_d meaning ("percent around the wheel's mean") for every wheel colour.
 HUE_SCALE_DEG = 180.0
+# Largest rim radius accepted (mm): sinkage is z0 * R / r, which must stay a finite number; no
+# wheel is 100 m in radius, but 1.7e308 mm would make every sinkage infinite.
+MAX_WHEEL_RADIUS_MM = 1e5
 
 
 class RigError(ValueError):
@@ -59,9 +62,44 @@ class Rig(eqx.Module):
     confidence_rect: tuple[int, int, int, int] = eqx.field(static=True)
     travel: str = eqx.field(static=True, default="right")
     segmentation: SegmentationParams = SegmentationParams()
+    # Optional: the rim's radius in image pixels, roughly; the rim search then looks within
+    # RIM_HINT_TOLERANCE of it instead of over the default fractions of the image size.
+    rim_radius_px: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self) -> None:
         validate_rig_fields(self.wheel_radius_mm, self.confidence_rect, self.travel)
+        _check_rim_hint(self.rim_radius_px, "rig")
+
+
+# A rim_radius_px hint is searched from (1 - t) to (1 + t) times itself: it need only be rough.
+RIM_HINT_TOLERANCE = 0.25
+# Largest rim_radius_px accepted: bigger than any image a camera makes.
+MAX_RIM_RADIUS_PX = 1e5
+
+
+def rim_hint_range_px(rig: Rig) -> tuple[float, float] | None:
+    """The rim radii (px) to search given the rig's ``rim_radius_px`` hint; None without one
+    (each method then uses its default range, fractions of the image's shorter side)."""
+    if rig.rim_radius_px is None:
+        return None
+    r = float(rig.rim_radius_px)
+    return (1.0 - RIM_HINT_TOLERANCE) * r, (1.0 + RIM_HINT_TOLERANCE) * r
+
+
+def _check_rim_hint(value: Any, source: str) -> None:
+    if value is None:
+        return
+    if (
+        not isinstance(value, int | float)
+        or isinstance(value, bool)
+        or not math.isfinite(value)
+        or not 4.0 <= value <= MAX_RIM_RADIUS_PX
+    ):
+        raise RigError(
+            f"{source}: rim_radius_px must be a number of pixels from 4 to "
+            f"{MAX_RIM_RADIUS_PX:g} (the rim's radius in the image, roughly), got {value!r}; "
+            "e.g. rim_radius_px = 180, or leave it out"
+        )
 
 
 def validate_rig_fields(
@@ -77,6 +115,12 @@ def validate_rig_fields(
         raise RigError(
             f"{source}: wheel_radius_mm must be a positive number (the rim radius R in mm), "
             f"got {wheel_radius_mm!r}; e.g. wheel_radius_mm = 140.0"
+        )
+    if wheel_radius_mm > MAX_WHEEL_RADIUS_MM:
+        raise RigError(
+            f"{source}: wheel_radius_mm = {wheel_radius_mm!r} is more than "
+            f"{MAX_WHEEL_RADIUS_MM:g} mm ({MAX_WHEEL_RADIUS_MM / 1000:g} m); write the rim "
+            "radius R in millimetres, e.g. wheel_radius_mm = 140.0"
         )
     if (
         not isinstance(confidence_rect, tuple | list)
@@ -160,10 +204,18 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
         seg_kwargs[name] = float(value)
     seg = SegmentationParams(**seg_kwargs)
     _check_segmentation(seg, source)
-    return Rig(wheel_radius_mm=radius, confidence_rect=rect, travel=travel, segmentation=seg)
+    hint = data.get("rim_radius_px")
+    _check_rim_hint(hint, source)
+    return Rig(
+        wheel_radius_mm=radius,
+        confidence_rect=rect,
+        travel=travel,
+        segmentation=seg,
+        rim_radius_px=None if hint is None else float(hint),
+    )
 
 
-RIG_KEYS = ("wheel_radius_mm", "confidence_rect", "travel", "segmentation")
+RIG_KEYS = ("wheel_radius_mm", "confidence_rect", "travel", "rim_radius_px", "segmentation")
 
 
 def _check_keys(data: dict[str, Any], known: tuple[str, ...], source: str, table: str) -> None:
@@ -219,6 +271,11 @@ def rig_to_toml(rig: Rig, comment: str | None = None) -> str:
         f"wheel_radius_mm = {float(rig.wheel_radius_mm)!r}",
         f"confidence_rect = [{x}, {y}, {w}, {h}]",
         f'travel = "{rig.travel}"',
+        *(
+            [f"rim_radius_px = {float(rig.rim_radius_px)!r}"]
+            if rig.rim_radius_px is not None
+            else []
+        ),
         "",
         "[segmentation]",
     ]

@@ -9,11 +9,19 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
 from ..rig import RigError
-from .cli_base import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, Command, UsageError
+from .cli_base import (
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    Command,
+    UsageError,
+)
 from .cli_estimate import _add_estimate, _run_estimate
 from .cli_tools import (
     _add_demo,
@@ -89,7 +97,8 @@ def _setup_logging() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``sinkjax``; returns the exit code (0 done, 2 unusable arguments or inputs)."""
+    """Run ``sinkjax``; returns the exit code (0 done, 2 unusable arguments or inputs, 1 a bug,
+    130 interrupted). No traceback reaches the user unless ``SINKJAX_TRACEBACK`` is set."""
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging()
@@ -98,12 +107,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, InputError, RigError) as e:
         print(f"sinkjax {args.command}: error: {e}", file=sys.stderr)
         return EXIT_USAGE
+    except OSError as e:  # a file the command was pointed at (permissions, a full disk, ...)
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"sinkjax {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
         kept = ""
         if args.command == "estimate":
             kept = f"; the rows finished so far are in {args.out} (finish with --resume)"
         print(f"sinkjax {args.command}: interrupted{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except Exception as e:
+        # A bug, not the user's input: one line, and the traceback only when asked for.
+        if os.environ.get("SINKJAX_TRACEBACK"):
+            raise
+        print(
+            f"sinkjax {args.command}: internal error (please report it): "
+            f"{type(e).__name__}: {e}; set SINKJAX_TRACEBACK=1 to see where",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 EXIT_OK = 0
+EXIT_INTERNAL = 1  # a bug: reported in one line, see sinkjax.app.cli.main
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 

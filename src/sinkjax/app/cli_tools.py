@@ -44,16 +44,19 @@ def _run_synth(args: argparse.Namespace) -> int:
         raise UsageError(f"--frames must be at least 1, got {args.frames}")
     if args.width < 32 or args.height < 32:
         raise UsageError(f"--width/--height must be at least 32 px, got {args.width}x{args.height}")
-    out = synth.write_recording(
-        args.out,
-        n_frames=args.frames,
-        seed=args.seed,
-        preset=args.preset,
-        width=args.width,
-        height=args.height,
-        travel=args.travel,
-        progress=True,
-    )
+    try:
+        out = synth.write_recording(
+            args.out,
+            n_frames=args.frames,
+            seed=args.seed,
+            preset=args.preset,
+            width=args.width,
+            height=args.height,
+            travel=args.travel,
+            progress=True,
+        )
+    except OSError as e:
+        raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e
     print(f"wrote {args.frames} frames, rig.toml and truth.csv to {out}")
     print(f"measure them with: sinkjax estimate {out}")
     return EXIT_OK

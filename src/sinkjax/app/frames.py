@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,9 @@ import cv2
 import numpy as np
 
 from ..status import Status
+from .image_file import BadImageError, read_image, to_rgb8
+
+__all__ = ["read_image", "to_rgb8"]  # re-exported: their home before image_file
 from .sources import Source, expand_paths
 
 log = logging.getLogger("sinkjax")
@@ -102,122 +106,19 @@ def check_image_size(shape: tuple[int, ...]) -> str | None:
     )
 
 
-def to_rgb8(array: np.ndarray, *, bgr: bool = True) -> np.ndarray:
-    """Any decoded image -> RGB uint8 (H, W, 3).
-
-    Grey (H, W) or (H, W, 1) is repeated over 3 channels; grey+alpha keeps the grey; a 4th
-    (alpha) channel is dropped, not composited; uint16 is scaled by 255/65535 over the FULL
-    16-bit range (no per-frame stretch, which would shift colours between frames). ``bgr``: the
-    input is in OpenCV's BGR(A) order. Raises ValueError for other shapes or pixel types.
-    """
-    a = np.asarray(array)
-    if a.ndim == 2:
-        a = a[:, :, None]
-    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4) or a.shape[0] < 1 or a.shape[1] < 1:
-        raise ValueError(f"unsupported image shape {a.shape}; expected (H, W) or (H, W, 1-4)")
-    if a.dtype == np.uint16:
-        a = ((a.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
-    elif a.dtype != np.uint8:
-        raise ValueError(f"unsupported pixel type {a.dtype}; convert the image to 8 or 16 bit")
-    channels = a.shape[2]
-    if channels <= 2:
-        rgb = np.repeat(a[:, :, :1], 3, axis=2)
-    else:
-        rgb = a[:, :, :3]
-        if bgr:
-            rgb = rgb[:, :, ::-1]
-    return np.ascontiguousarray(rgb)
-
-
-_SIGNATURES = (
-    (b"\x89PNG\r\n\x1a\n", "PNG"),
-    (b"\xff\xd8", "JPEG"),
-    (b"BM", "BMP"),
-    (b"II*\x00", "TIFF"),
-    (b"MM\x00*", "TIFF"),
-)
-
-
-def _format_of(data: bytes) -> str | None:
-    for magic, name in _SIGNATURES:
-        if data.startswith(magic):
-            return name
-    return None
-
-
-def _jpeg_complete(data: bytes) -> bool:
-    """True if the JPEG's first scan is followed by an end-of-image marker.
-
-    Walks the marker segments up to the first SOS so that an EXIF thumbnail (inside APP1, with
-    its own EOI) cannot make a truncated main image look complete. Inside scan data 0xFF is
-    byte-stuffed, so an FF D9 after the SOS is a real end marker.
-    """
-    i = 2
-    while i + 4 <= len(data):
-        if data[i] != 0xFF:
-            return False
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker == 0xDA:
-            return data.find(b"\xff\xd9", i) != -1
-        if 0xD0 <= marker <= 0xD9 or marker == 0x01:
-            i += 2
-            continue
-        i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
-    return False
-
-
-def read_image(path: str | Path) -> np.ndarray:
-    """Read one image file as RGB uint8 (H, W, 3) (see :func:`to_rgb8` for the conversions).
-
-    Raises OSError if the file cannot be read and ValueError (message in words) if it is empty,
-    truncated, not an image, or of an unsupported pixel type.
-    """
-    data = Path(path).read_bytes()
-    if not data:
-        raise ValueError("empty file (0 bytes)")
-    fmt = _format_of(data)
-    if fmt is None:
-        raise ValueError("not an image: the content is not PNG, JPEG, BMP or TIFF")
-    if fmt == "PNG" and b"IEND" not in data[-16:]:
-        raise ValueError(f"truncated PNG ({len(data)} bytes, no end chunk)")
-    if fmt == "JPEG" and not _jpeg_complete(data):
-        raise ValueError(f"truncated JPEG ({len(data)} bytes, no end-of-image marker)")
-    decoded = _quiet_imdecode(data)
-    if decoded is None:
-        raise ValueError(f"corrupt {fmt}: OpenCV could not decode it")
-    return to_rgb8(decoded, bgr=True)
-
-
-def _quiet_imdecode(data: bytes) -> np.ndarray | None:
-    # We report decode failures per frame ourselves; OpenCV's own warnings would only add noise.
-    logging_api = getattr(getattr(cv2, "utils", None), "logging", None)
-    previous = None
-    if logging_api is not None:
-        previous = logging_api.getLogLevel()
-        logging_api.setLogLevel(logging_api.LOG_LEVEL_ERROR)
-    try:
-        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        return None
-    finally:
-        if logging_api is not None and previous is not None:
-            logging_api.setLogLevel(previous)
-
-
 def _image_frame(source: Source) -> Frame:
     stem = source.path.stem
     try:
         image = read_image(source.path)
     except OSError as e:
-        return Frame(
-            source.name, None, Status.UNREADABLE, f"cannot read file: {e.strerror or e}", stem
-        )
+        reason = f"cannot read file: {e.strerror or e}"
+        if source.path.is_symlink() and not source.path.exists():
+            reason = f"broken symbolic link (to {os.readlink(source.path)!r}): {reason}"
+        return Frame(source.name, None, Status.UNREADABLE, reason, stem)
+    except BadImageError as e:
+        return Frame(source.name, None, Status.BAD_IMAGE, str(e), stem)
     except ValueError as e:
-        status = Status.BAD_IMAGE if str(e).startswith("unsupported") else Status.UNREADABLE
-        return Frame(source.name, None, status, str(e), stem)
+        return Frame(source.name, None, Status.UNREADABLE, str(e), stem)
     return Frame(source.name, image, stem=stem)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import os
 from pathlib import Path
 
@@ -12,30 +13,6 @@ from .smoothing import SMOOTH_COLUMNS
 
 class ResumeError(ValueError):
     """``resume`` was asked for, but the output file is not a results CSV this run can extend."""
-
-
-def _truncate_partial_row(path: Path) -> None:
-    """Cut a row that a killed run left half-written (no final newline); it is measured again."""
-    with open(path, "rb+") as f:
-        f.seek(0, os.SEEK_END)
-        size = f.tell()
-        if size == 0:
-            return
-        f.seek(size - 1)
-        if f.read(1) == b"\n":
-            return
-        # Rows are short: look back a block at a time for the last newline.
-        end = size
-        while end > 0:
-            start = max(0, end - 65536)
-            f.seek(start)
-            block = f.read(end - start)
-            cut = block.rfind(b"\n")
-            if cut != -1:
-                f.truncate(start + cut + 1)
-                return
-            end = start
-        f.truncate(0)
 
 
 def _strip_columns(path: Path, n_columns: int) -> None:
@@ -51,28 +28,61 @@ def _strip_columns(path: Path, n_columns: int) -> None:
     os.replace(tmp, path)
 
 
+def _read_header(path: Path) -> tuple[list[str], int] | None:
+    """The first line of ``path`` parsed as CSV and the byte offset after it; None for an empty
+    file. Raises ResumeError if that line is not complete (no newline within 64 KiB)."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    if not head:
+        return None
+    end = head.find(b"\n")
+    if end == -1:
+        raise ResumeError(
+            f"cannot resume into {path}: it is not a sinkjax results CSV (its first line is "
+            f"{head[:80].decode('utf-8', 'replace')!r}...); pass another --out, or drop --resume "
+            "to overwrite it"
+        )
+    try:
+        line = head[: end + 1].decode("utf-8", "surrogateescape")
+        header = next(csv.reader(io.StringIO(line, newline="")), [])
+    except csv.Error:
+        header = []
+    return header, end + 1
+
+
 def prepare_resume(out_csv: str | Path) -> set[str]:
     """Make ``out_csv`` ready to be appended to; return the image names it already has.
 
-    A missing or empty file is a fresh start (empty set; the caller writes the header). A row
-    left half-written is removed; smoothed columns from an earlier ``smooth`` are dropped (they
-    are recomputed over the whole file). Raises ResumeError for a file with another header.
+    A missing or empty file is a fresh start (empty set; the caller writes the header). The
+    file is checked whole before it is touched: ResumeError leaves it byte for byte as it was
+    (another header, a first line that is not complete, rows that are not CSV). Only then is a
+    row left half-written (no final newline) cut off, to be measured again, and smoothed columns
+    from an earlier ``smooth`` dropped (they are recomputed over the whole file).
     """
     path = Path(out_csv)
     if not path.is_file():
         return set()
-    _truncate_partial_row(path)
-    with open(path, newline="", encoding="utf-8", errors="surrogateescape") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            return set()
-        if tuple(header) not in (COLUMNS, (*COLUMNS, *SMOOTH_COLUMNS)):
-            raise ResumeError(
-                f"cannot resume into {path}: it is not a sinkjax results CSV (its header is "
-                f"{','.join(header)[:80]!r}); pass another --out, or drop --resume to overwrite it"
-            )
-        done = {row[0] for row in reader if row}
+    parsed = _read_header(path)
+    if parsed is None:
+        return set()
+    header, start = parsed
+    if tuple(header) not in (COLUMNS, (*COLUMNS, *SMOOTH_COLUMNS)):
+        raise ResumeError(
+            f"cannot resume into {path}: it is not a sinkjax results CSV (its header is "
+            f"{','.join(header)[:80]!r}); pass another --out, or drop --resume to overwrite it"
+        )
+    data = path.read_bytes()
+    cut = data.rfind(b"\n") + 1  # after the last complete row; a partial row follows it
+    try:
+        rows = list(csv.reader(io.StringIO(data[start:cut].decode("utf-8", "surrogateescape"))))
+    except csv.Error as e:
+        raise ResumeError(
+            f"cannot resume into {path}: its rows are not valid CSV ({e}); pass another --out"
+        ) from e
+    # Checked: from here on the file is continued, never refused.
+    if cut < len(data):
+        with open(path, "rb+") as f:
+            f.truncate(cut)
     if len(header) != len(COLUMNS):
         _strip_columns(path, len(COLUMNS))
-    return done
+    return {row[0] for row in rows if row}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -106,15 +107,16 @@ def estimate_to_csv(
     else:
         inputs = open_recordings(paths, rig_path=rig_path)
     out = Path(out_csv)
-    check_output(out, inputs)
+    check_output(out, inputs, overlay_dir=overlay_dir, overlay_video=overlay_video)
     done: set[str] = set()  # filled below; the frames are read lazily, after that
     pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select, skip=done)
+    # Only now, with every argument checked, may an output be touched; prepare_resume checks
+    # the whole file before it changes a byte of it.
+    if resume:
+        done.update(prepare_resume(out))
     video = None
     if overlay_video is not None:
         video = OverlayVideoWriter(overlay_video, fps=frame_rate(inputs.sources, select=select))
-    # Only now, with every argument checked, may the output file be touched.
-    if resume:
-        done.update(prepare_resume(out))
     fresh = not (resume and out.is_file() and out.stat().st_size > 0)
     out.parent.mkdir(parents=True, exist_ok=True)
     overlays = OverlayWriter(overlay_dir) if overlay_dir is not None else None
@@ -157,22 +159,66 @@ def estimate_to_csv(
     return summary
 
 
-def check_output(out: Path, inputs: Inputs) -> None:
-    """Raise ValueError if the results CSV would overwrite one of the run's input files."""
-    try:
-        target = out.resolve()
-    except OSError:
-        return
-    for source in inputs.sources:
-        try:
-            same = source.path.resolve() == target
-        except OSError:
-            same = False
-        if same:
+def check_output(
+    out: Path,
+    inputs: Inputs,
+    *,
+    overlay_dir: str | Path | None = None,
+    overlay_video: str | Path | None = None,
+) -> None:
+    """Every check of a run's outputs, made before any work: raise ValueError if the results CSV
+    or the overlay video would overwrite an input or each other, is a folder, or lies in a folder
+    that cannot be written; or if the overlay folder is a file or holds input images (overlays
+    are named after their frames and would replace them)."""
+    inputs_at = {_resolved(s.path): s.name for s in inputs.sources}
+    files = [("--out", out)]
+    if overlay_video is not None:
+        files.append(("--overlay-video", Path(overlay_video)))
+        if _resolved(Path(overlay_video)) == _resolved(out):
+            raise ValueError(f"--overlay-video and --out both name {str(out)!r}")
+    for flag, path in files:
+        if _resolved(path) in inputs_at:
             raise ValueError(
-                f"--out {str(out)!r} is one of the inputs ({source.name}); choose another "
-                "results file"
+                f"{flag} {str(path)!r} is one of the inputs ({inputs_at[_resolved(path)]}); "
+                "choose another file"
             )
+        if path.is_dir():
+            raise ValueError(f"{flag} {str(path)!r} is a folder; name a file in it")
+        check_writable_folder(path.parent, flag)
+    if overlay_dir is not None:
+        folder = Path(overlay_dir)
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"--overlay {str(folder)!r} is a file, not a folder")
+        here = _resolved(folder)
+        held = [
+            s.name for s in inputs.sources if s.kind == "image" and _resolved(s.path).parent == here
+        ]
+        if held:
+            raise ValueError(
+                f"--overlay {str(folder)!r} holds input images ({held[0]}); overlays named after "
+                "them would replace them, choose another folder"
+            )
+        check_writable_folder(folder, "--overlay")
+
+
+def _resolved(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):  # a symlink loop
+        return path.absolute()
+
+
+def check_writable_folder(folder: Path, flag: str) -> None:
+    """Raise ValueError unless ``folder`` is, or can be made as, a folder we may write into."""
+    existing = folder if str(folder) else Path(".")
+    while not existing.exists() and existing != existing.parent:
+        if existing.is_symlink():
+            raise ValueError(f"{flag}: {str(existing)!r} is a broken symbolic link")
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{flag}: {str(existing)!r} is not a folder, so nothing can go in it")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{flag}: no permission to write into folder {str(existing)!r}")
 
 
 def _write_overlays(

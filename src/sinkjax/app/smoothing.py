@@ -202,14 +202,27 @@ class NotAResultsCsv(ValueError):
 def read_results(path: str | Path) -> tuple[list[str], list[dict[str, str]]]:
     """Header and rows of a results CSV. Raises NotAResultsCsv unless it starts with COLUMNS."""
     with open(path, newline="", encoding="utf-8", errors="surrogateescape") as f:
-        reader = csv.DictReader(f)
-        header = list(reader.fieldnames or [])
-        if tuple(header[: len(COLUMNS)]) != COLUMNS:
-            raise NotAResultsCsv(
-                f"{path} is not a sinkjax results CSV: its header {','.join(header)[:120]!r} "
-                f"does not start with {','.join(COLUMNS[:3])},..."
-            )
-        return header, list(reader)
+        reader = csv.DictReader(f, restval="")
+        try:
+            header = list(reader.fieldnames or [])
+            if tuple(header[: len(COLUMNS)]) != COLUMNS:
+                raise NotAResultsCsv(
+                    f"{path} is not a sinkjax results CSV: its header is {_shown(header)} "
+                    f"instead of {','.join(COLUMNS[:3])},..."
+                )
+            return header, list(reader)
+        except csv.Error as e:
+            raise NotAResultsCsv(f"{path} is not a sinkjax results CSV: {e}") from None
+
+
+def _shown(header: list[str]) -> str:
+    """A header in a message: quoted and short, or "binary data" when it is not text."""
+    text = ",".join(header)
+    if not text:
+        return "empty"
+    if not text.isprintable() or any("\udc80" <= ch <= "\udcff" for ch in text):
+        return "binary data (not text)"
+    return repr(text[:80])
 
 
 def smooth_csv(

@@ -158,6 +158,8 @@ def expand_paths(paths: Sequence[str | Path]) -> Inputs:
                 )
         elif p.exists():
             raise InputError(f"{given!r} is not a regular file or directory")
+        elif p.is_symlink():
+            raise InputError(f"{given!r} is a broken symbolic link (to {os.readlink(p)!r})")
         else:
             raise InputError(f"{given!r} does not exist; check the path")
     close_loose()
@@ -174,7 +176,7 @@ def _images_in(directory: Path, given: str) -> list[Source]:
     images = [
         Source("image", directory / n, os.path.join(given, n))
         for n in entries
-        if not n.startswith(".") and is_image_path(n) and (directory / n).is_file()
+        if not n.startswith(".") and is_image_path(n) and _file_or_dangling(directory / n)
     ]
     videos = [n for n in entries if is_video_path(n)]
     if videos:
@@ -185,6 +187,11 @@ def _images_in(directory: Path, given: str) -> list[Source]:
             videos[0] if len(videos) == 1 else f"{videos[0]}, ...",
         )
     return images
+
+
+def _file_or_dangling(path: Path) -> bool:
+    # A broken symbolic link is an input that went missing: it gets a row saying so, not silence.
+    return path.is_file() or (path.is_symlink() and not path.exists())
 
 
 def parse_rect(text: str) -> tuple[int, int, int, int]:

@@ -62,7 +62,7 @@ def brightness_contrast(
 
 def channel_gains(image: Float[Array, "H W 3"], gains: Float[Array, " 3"]) -> Float[Array, "H W 3"]:
     """Per-channel gains (a white-balance error or coloured lamp), clipped to [0, 1]."""
-    return jnp.clip(image * gains, 0.0, 1.0)
+    return jnp.clip(image * gains[None, None, :], 0.0, 1.0)
 
 
 def colour_temperature_gains(mired_shift: Float[Array, ""]) -> Float[Array, " 3"]:

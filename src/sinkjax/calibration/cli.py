@@ -49,10 +49,33 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _check_out(out: Path, inputs: list[Path]) -> None:
+    """Raise RigError if the calibrated rig cannot be written to ``out`` or would replace one of
+    ``inputs``: checked before any work, not after minutes of it."""
+    from ..app.run import check_writable_folder
+
+    if not out.parent.is_dir():
+        raise RigError(f"cannot write {str(out)!r}: folder {str(out.parent)!r} does not exist")
+    if out.is_dir():
+        raise RigError(f"--out {str(out)!r} is a folder; name the rig file to write")
+    for path in inputs:
+        if path.exists() and out.resolve() == path.resolve():
+            raise RigError(
+                f"--out {str(out)!r} is one of the inputs ({path}); write the calibrated rig to "
+                "another file"
+            )
+    try:
+        check_writable_folder(out.parent, "--out")
+    except ValueError as e:
+        raise RigError(str(e)) from e
+
+
 def run_cli(args: argparse.Namespace) -> int:
     """``sinkjax calibrate``: validate everything, calibrate, write the rig, print a summary."""
     labels = Path(args.labels)
     rig_path = Path(args.rig) if args.rig else labels.parent / "rig.toml"
+    out = Path(args.out)
+    _check_out(out, [labels, rig_path])
     if not rig_path.is_file():
         raise RigError(
             f"rig file {str(rig_path)!r} does not exist; pass --rig RIG.toml or put the rig.toml "
@@ -60,9 +83,7 @@ def run_cli(args: argparse.Namespace) -> int:
         )
     rig = load_rig(rig_path)
     frames = read_labels(labels, rig)
-    out = Path(args.out)
-    if not out.parent.is_dir():
-        raise RigError(f"cannot write {str(out)!r}: folder {str(out.parent)!r} does not exist")
+    _check_out(out, [labels.parent / name for name in frames.names])
     n_cells = int(np.isfinite(frames.targets).sum())
     print(f"calibrating {rig_path} on {len(frames.names)} frames ({n_cells} measured values)")
     result = calibrate(

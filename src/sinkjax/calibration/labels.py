@@ -51,7 +51,11 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
         text = p.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise LabelError(f"{p}: cannot read it as UTF-8 text ({e})") from e
-    reader = csv.reader(text.splitlines())
+    try:
+        lines = list(csv.reader(text.splitlines()))
+    except csv.Error as e:
+        raise LabelError(f"{p}: not a CSV file ({e})") from e
+    reader = iter(lines)
     header = [h.strip() for h in next(reader, [])]
     missing = [c for c in LABEL_COLUMNS if c not in header]
     if missing:
@@ -121,6 +125,11 @@ def _parse_cell(cell: str, where: str, column: str) -> float:
             f"{where} {column}: {cell!r} is not a number; write it with '.' decimals and no "
             "unit, or leave the cell empty if it was not measured"
         ) from None
+    if not math.isfinite(value):
+        raise LabelError(
+            f"{where} {column}: {cell!r} is not a finite number; leave the cell empty if it was "
+            "not measured"
+        )
     limit = math.inf if column == "sinkage_mm" else 180.0
     if not 0.0 <= value <= limit:
         unit = "mm >= 0" if column == "sinkage_mm" else "degrees in [0, 180]"

@@ -45,7 +45,7 @@ from ..geometry import (
     travel_sign,
 )
 from ..result import FrameResult, Overlay, failed, no_contact
-from ..rig import Rig
+from ..rig import Rig, rim_hint_range_px
 from ..status import Status
 from .outline import (
     hough_bin_px,
@@ -112,6 +112,16 @@ def _geometry(
     return _geometry_padded(xp, yp, wp, centre[0], centre[1], r, a_uv, b_uv, travel)
 
 
+def _searched(r_min: float, r_max: float, hinted: bool) -> str:
+    """Which rim radii a failed search looked at, and how to change them (for its message)."""
+    if hinted:
+        return f"rim radii searched: {r_min:.0f}-{r_max:.0f} px, from the rig's rim_radius_px"
+    return (
+        f"rim radii searched: {r_min:.0f}-{r_max:.0f} px, fractions of the image size; set "
+        "rim_radius_px in the rig if the rim's radius is outside"
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # The whole pipeline
 
@@ -174,25 +184,30 @@ def estimate_classic(
             name, Status.NO_WHEEL, "the wheel region's outline is too short to hold a rim"
         )
     m = min(height, width)
-    window = (HOUGH_WINDOW_FRAC[0] * m, HOUGH_WINDOW_FRAC[1] * m)
+    # A rig's rim_radius_px hint replaces both the search window and the plausible range.
+    hint = rim_hint_range_px(rig)
+    window = hint or (HOUGH_WINDOW_FRAC[0] * m, HOUGH_WINDOW_FRAC[1] * m)
+    r_min, r_max = hint or rim_radius_range_px(height, width)
+    searched = _searched(r_min, r_max, hint is not None)
     coarse = hough_rim_np(contour[inner], normals[inner], (height, width), window)
     if coarse is None:
         return failed(
-            name, Status.FIT_FAILED, "the Hough transform found no rim circle in the outline"
+            name,
+            Status.FIT_FAILED,
+            f"the Hough transform found no rim circle in the outline ({searched})",
         )
     bc = hough_bin_px(height, width)
     cx, cy, r, n_in = refine_rim(
         contour[inner], normals[inner], coarse[0], coarse[1], coarse[2], band0_px=2.0 * bc
     )
-    r_min, r_max = rim_radius_range_px(height, width)
     if not (np.isfinite([cx, cy, r]).all() and r_min <= r <= r_max):
-        return failed(name, Status.FIT_FAILED, f"rim fit diverged (r = {r:.1f} px)")
+        return failed(name, Status.FIT_FAILED, f"rim fit diverged (r = {r:.1f} px; {searched})")
     if n_in < 0.1 * 2.0 * math.pi * r:
         return failed(
             name,
             Status.FIT_FAILED,
             f"rim circle (r = {r:.1f} px) is supported by only {n_in} outline points; "
-            "the wheel's outline is not a circle (segmentation?)",
+            f"the wheel's outline is not a circle (segmentation?) or not in range ({searched})",
         )
     rx, ry, rw, rh = rect
     if math.hypot(rx + 0.5 * (rw - 1) - cx, ry + 0.5 * (rh - 1) - cy) > r:

@@ -13,15 +13,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import from_wheel_frame, travel_sign
 from ..result import FrameResult, Overlay, failed, no_contact
-from ..rig import Rig, SegmentationParams, rect_problem
+from ..rig import Rig, SegmentationParams, rect_problem, rim_hint_range_px
 from ..status import Status
 from .checks import message as check_message, plausibility
 from .fit import build_evidence, fit
-from .hough import hough_rim
+from .hough import hough_rim, radius_range_px
 from .model import end_point, measurements
 from .outline import extract_outline, refine_outline
 from .segmentation import soft_open, wheel_mask
@@ -66,6 +66,7 @@ def measure(
     uncertainty: UncertaintyModel | None = None,
     open_radius_px: int = 0,
     settings: SoftSettings | None = None,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> SoftEstimate:
     """The soft method on one image in [0, 1]. Keyword arguments are static.
 
@@ -75,6 +76,8 @@ def measure(
     as a differentiable min/max filter); by default only the outline's smoothing cleans the mask,
     which ``experiments/ablation_cleanup.py`` shows is enough. ``settings`` (None: the defaults)
     are the method's tuning settings, array leaves (not static: a new value does not recompile).
+    ``rim_range_px``: the rim radii to search (px; may be traced), None for the default
+    fractions of the image size.
     Never raises for image content: problems are reported in ``status``.
     """
     mask = wheel_mask(image, seg, rect)
@@ -87,6 +90,7 @@ def measure(
         wheel_radius_mm=wheel_radius_mm,
         uncertainty=uncertainty,
         settings=settings,
+        rim_range_px=rim_range_px,
     )
 
 
@@ -98,6 +102,7 @@ def measure_from_mask(
     wheel_radius_mm: float = 1.0,
     uncertainty: UncertaintyModel | None = None,
     settings: SoftSettings | None = None,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
@@ -115,7 +120,7 @@ def measure_from_mask(
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
     outline = refine_outline(image, extract_outline(mask, s), s)
     # The starting circle is a discrete choice: no gradient flows through it.
-    circle = jax.lax.stop_gradient(hough_rim(outline, height, width, s))
+    circle = jax.lax.stop_gradient(hough_rim(outline, height, width, s, rim_range_px))
     ev = build_evidence(outline, circle, travel_sign(travel), s)
     res = fit(ev)
     p = res.params
@@ -159,6 +164,7 @@ def _measure_u8(
     travel: str,
     wheel_radius_mm: float,
     uncertainty: UncertaintyModel | None = None,
+    rim_range_px: tuple[Array, Array] | None = None,
 ) -> SoftEstimate:
     # The default float: float32, or float64 when jax_enable_x64 is on (one dtype throughout,
     # which the solver requires).
@@ -170,6 +176,7 @@ def _measure_u8(
         travel=travel,
         wheel_radius_mm=wheel_radius_mm,
         uncertainty=uncertainty,
+        rim_range_px=rim_range_px,
     )
 
 
@@ -185,10 +192,11 @@ def _measure_batch(
     travel: str,
     wheel_radius_mm: float,
     uncertainty: UncertaintyModel | None = None,
+    rim_range_px: tuple[Array, Array] | None = None,
 ) -> SoftEstimate:
-    return jax.vmap(lambda im: _measure_u8(im, seg, rect, travel, wheel_radius_mm, uncertainty))(
-        images_u8
-    )
+    return jax.vmap(
+        lambda im: _measure_u8(im, seg, rect, travel, wheel_radius_mm, uncertainty, rim_range_px)
+    )(images_u8)
 
 
 def _use_vmap() -> bool:
@@ -224,25 +232,37 @@ def estimate_batch(
         return [failed(n, Status.BAD_RECT, problem) for n in names]
     n = len(images)
     args = (rig.segmentation, rig.confidence_rect, rig.travel, float(rig.wheel_radius_mm))
+    # A rim_radius_px hint travels as traced values: hinted rigs share one compiled function.
+    hint = rim_hint_range_px(rig)
+    span = None if hint is None else tuple(jnp.asarray(v) for v in hint)
     if _use_vmap():
         size = pad_to or 1 << (n - 1).bit_length()
         batch = np.stack(images + [images[0]] * (size - n))
-        out = _measure_batch(jnp.asarray(batch), *args, uncertainty)
+        out = _measure_batch(jnp.asarray(batch), *args, uncertainty, span)
     else:
-        each = [_measure_one(jnp.asarray(im), *args, uncertainty) for im in images]
+        each = [_measure_one(jnp.asarray(im), *args, uncertainty, span) for im in images]
         out = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *each)
     out = jax.tree_util.tree_map(np.asarray, out)
-    return [frame_result(out, i, names[i], rig) for i in range(n)]
+    lo, hi = hint or radius_range_px(height, width)
+    searched = f"{lo:.0f}-{hi:.0f} px, " + (
+        "from the rig's rim_radius_px"
+        if hint
+        else "fractions of the image size; set rim_radius_px in the rig if the rim's radius "
+        "is outside"
+    )
+    return [frame_result(out, i, names[i], rig, searched) for i in range(n)]
 
 
-def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig) -> FrameResult:
+def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str = "") -> FrameResult:
     """Frame ``i`` of a batched :class:`SoftEstimate` as the common :class:`FrameResult`
-    (degrees, image px, the overlay geometry)."""
+    (degrees, image px, the overlay geometry). ``searched``: the rim radii searched, for the
+    message of a frame without a rim."""
     p = out.params[i].astype(float)
     status = Status.from_code(int(out.status[i]))
     cx, cy, r = float(p[0]), float(p[1]), float(p[2])
     if status == Status.NO_WHEEL:
-        return failed(name, Status.NO_WHEEL)
+        rim = f" (rim radii searched: {searched})" if searched else ""
+        return failed(name, Status.NO_WHEEL, Status.NO_WHEEL.message + rim)
     if status == Status.FIT_FAILED or not np.all(np.isfinite(p)):
         return FrameResult(
             image=name,

@@ -58,11 +58,11 @@ def build_evidence(
     align = align / d
     w = outline.weight
     dr = d - circle.r_px
-    in_band = (dr >= -s.rim_band_in_px) & (dr <= s.rim_band_out_px)
+    in_band = ((dr >= -s.rim_band_in_px) & (dr <= s.rim_band_out_px)).astype(dt)
     outer = jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     w_rim = w * in_band * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
 
-    inside = dr < -s.rim_band_in_px
+    inside = (dr < -s.rim_band_in_px).astype(dt)
     faces_down = jax.nn.sigmoid((outline.ny - 0.3) / 0.1)
     soil_below = jnp.exp(-outline.wheel_below_px / s.wheel_below_scale_px)
     # Non-maximum suppression leaves one point per column on gentle edges and one per row on
@@ -72,7 +72,7 @@ def build_evidence(
 
     # The ends' tangents come from boundary points clear of the corner where the soil edge meets
     # the rim edge (smoothing rounds that corner over a few pixels and would bend them upward).
-    clear = dr < -s.end_clearance_px
+    clear = (dr < -s.end_clearance_px).astype(dt)
     w_end = w_line * clear
     present = w_end > 0.5 * jnp.max(w_end)
     i_a = jnp.argmax(jnp.where(present, u, -jnp.inf))
@@ -80,8 +80,8 @@ def build_evidence(
     win = end_window_px(circle.r_px, s)
     near_a = jnp.hypot(u - u[i_a], v - v[i_a]) < win
     near_b = jnp.hypot(u - u[i_b], v - v[i_b]) < win
-    w_a = w_end * near_a
-    w_b = w_end * near_b * ~near_a
+    w_a = w_end * near_a.astype(dt)
+    w_b = w_end * near_b.astype(dt) * (~near_a).astype(dt)
 
     k0, b0 = equivalent_line(u, v, w_line)
     # An end with too few points (a very short boundary) starts from the equivalent line.

@@ -14,7 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .outline import Outline
 from .settings import SoftSettings
@@ -40,22 +40,44 @@ def _kasa(x: Array, y: Array, w: Array) -> tuple[Array, Array, Array]:
     u, v = x - xm, y - ym
     z = u * u + v * v
     a = jnp.stack([u, v, jnp.ones_like(u)], -1) * jnp.sqrt(w)[:, None]
-    sol = jnp.linalg.lstsq(a.T @ a + 1e-9 * jnp.eye(3), a.T @ (-z * jnp.sqrt(w)))[0]
+    sol = jnp.linalg.lstsq(a.T @ a + 1e-9 * jnp.eye(3, dtype=a.dtype), a.T @ (-z * jnp.sqrt(w)))[0]
     d, e, f = sol
     cx, cy = -d / 2, -e / 2
     r = jnp.sqrt(jnp.maximum(cx * cx + cy * cy - f, 1e-6))
     return cx + xm, cy + ym, r
 
 
-def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings) -> Circle:
-    """Initial rim circle (image pixels). ``height``/``width`` are static."""
+def hough_rim(
+    outline: Outline,
+    height: int,
+    width: int,
+    settings: SoftSettings,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
+) -> Circle:
+    """Initial rim circle (image pixels). ``height``/``width`` are static.
+
+    ``rim_range_px``: the radii to search (a rig's ``rim_radius_px`` hint, traced: one compiled
+    function serves every hint); None: :func:`radius_range_px` of the image size.
+    """
     dt = outline.x_px.dtype
     bin_px = settings.centre_bin_px
-    r_min, r_max = radius_range_px(height, width)
-    # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin of the
-    # true centre for the nearest candidate (coarser steps smear the votes into a ring).
-    n_radii = int(np.ceil((r_max - r_min) / bin_px)) + 1
-    radii = jnp.linspace(r_min, r_max, n_radii, dtype=dt)
+    r_min: ArrayLike
+    r_max: ArrayLike
+    if rim_range_px is None:
+        r_min, r_max = radius_range_px(height, width)
+        # Candidate radii one centre bin apart: a rim point's vote then lands within half a bin
+        # of the true centre for the nearest candidate (coarser steps smear the votes).
+        n_radii = int(np.ceil((r_max - r_min) / bin_px)) + 1
+        radii = jnp.linspace(r_min, r_max, n_radii, dtype=dt)
+        nb = int(r_max) + 8
+    else:
+        # Sizes fixed by the image alone: enough radii to stay a bin apart over half the
+        # diagonal, and radius histogram bins up to the diagonal.
+        diagonal = float(np.hypot(height, width))
+        r_min, r_max = (jnp.asarray(v, dt) for v in rim_range_px)
+        n_radii = int(np.ceil(0.5 * diagonal / bin_px)) + 1
+        radii = r_min + (r_max - r_min) * jnp.linspace(0.0, 1.0, n_radii, dtype=dt)
+        nb = int(diagonal) + 8
     # Only edges with non-wheel beyond them can be the rim (or lug tips).
     w = outline.weight * jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     # Centre votes: p - n r (the normal points outwards on the rim).
@@ -67,19 +89,18 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
     iy = jnp.floor(vy / bin_px).astype(jnp.int32)
     inside = (ix >= 0) & (ix < bw) & (iy >= 0) & (iy < bh)
     lin = jnp.where(inside, iy * bw + ix, 0)
-    acc = jnp.zeros(bh * bw, dt).at[lin.ravel()].add((w[:, None] * inside).ravel())
+    acc = jnp.zeros(bh * bw, dt).at[lin.ravel()].add((w[:, None] * inside.astype(dt)).ravel())
     acc = acc.reshape(bh, bw)
     acc = jax.lax.reduce_window(acc, 0.0, jax.lax.add, (3, 3), (1, 1), "SAME")
     best = jnp.argmax(acc)
-    cx = ((best % bw + 0.5) * bin_px).astype(dt)
-    cy = ((best // bw + 0.5) * bin_px).astype(dt)
+    cx = ((best % bw).astype(dt) + 0.5) * bin_px
+    cy = ((best // bw).astype(dt) + 0.5) * bin_px
 
     def histogram(cx: Array, cy: Array) -> tuple[Array, Array]:
         dx, dy = outline.x_px - cx, outline.y_px - cy
         d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
         align = (dx * outline.nx + dy * outline.ny) / d
         wr = w * jnp.clip(align, 0.0, 1.0) ** 4
-        nb = int(r_max) + 8
         hist = jnp.zeros(nb, dt).at[jnp.clip(jnp.round(d).astype(jnp.int32), 0, nb - 1)].add(wr)
         hist = jnp.convolve(hist, jnp.array([1.0, 2.0, 3.0, 2.0, 1.0], dt), mode="same")
         rb = jnp.arange(nb, dtype=dt)
@@ -90,7 +111,7 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
         dx, dy = outline.x_px - cx, outline.y_px - cy
         d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
         align = (dx * outline.nx + dy * outline.ny) / d
-        wi = w * (jnp.abs(d - r) < band) * (align > 0.8)
+        wi = w * (jnp.abs(d - r) < band).astype(dt) * (align > 0.8).astype(dt)
         ncx, ncy, nr = _kasa(outline.x_px, outline.y_px, wi)
         enough = jnp.sum(wi) > 20.0
         return (
@@ -116,6 +137,6 @@ def hough_rim(outline: Outline, height: int, width: int, settings: SoftSettings)
     dx, dy = outline.x_px - cx, outline.y_px - cy
     d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
     align = (dx * outline.nx + dy * outline.ny) / d
-    on_rim = w * (jnp.abs(d - r) < 1.5) * (align > 0.8)
+    on_rim = w * (jnp.abs(d - r) < 1.5).astype(dt) * (align > 0.8).astype(dt)
     support = jnp.sum(on_rim) / (2 * jnp.pi * jnp.maximum(r, 1.0))
     return Circle(cx_px=cx, cy_px=cy, r_px=r, support=support)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ..geometry import entry_angle_rad, exit_angle_rad, sinkage_px
@@ -89,7 +90,10 @@ def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
 
 
 def end_point(
-    alpha: Float[Array, ""], c: Float[Array, ""], r: Float[Array, ""], side: float
+    alpha: Float[Array | np.floating, ""],
+    c: Float[Array | np.floating, ""],
+    r: Float[Array | np.floating, ""],
+    side: float,
 ) -> Float[Array, " 2"]:
     """Intersection of the line -sin(a) u + cos(a) v = c with the rim, on side +1 (A) or -1 (B).
 

@@ -93,7 +93,7 @@ def extract_outline(
         - _shift(m, -1, 1)
     ) / 8.0
     mag2 = gx * gx + gy * gy
-    mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0)
+    mag = jnp.sqrt(jnp.where(mag2 > 0, mag2, 1.0)) * (mag2 > 0).astype(mag2.dtype)
     # Quantise the gradient direction to 0/45/90/135 degrees for non-maximum suppression, by
     # comparisons (tan 22.5 deg) rather than an arctangent of every pixel.
     ax, ay = jnp.abs(gx), jnp.abs(gy)
@@ -117,7 +117,7 @@ def extract_outline(
     ridge = ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
 
     flat, count = _compact(ridge.ravel(), k)
-    valid = jnp.arange(k) < count
+    valid = jnp.arange(k, dtype=count.dtype) < count
     rows = flat // width
     cols = flat % width
     e0 = mag[rows, cols]

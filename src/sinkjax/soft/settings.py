@@ -16,13 +16,16 @@ arrays (the edge profile's sampling, the Hough bin) are static fields: changing 
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 
-def _scalar(default: float) -> Float[Array, ""]:
+def _scalar(default: float) -> Any:
+    """A dataclass field for a scalar array leaf (what the annotation of the field says)."""
     return eqx.field(converter=jnp.asarray, default=default)
 
 

@@ -128,7 +128,7 @@ def surface_y_px(scene: Scene, x_px: Float[np.ndarray, "*n"]) -> Float[np.ndarra
         y = y + scene.rut_depth_px * 0.5 * (1.0 + np.tanh(s))
     for amp, wavelength, phase in scene.rough:
         y = y + amp * np.sin(2.0 * np.pi * dx / wavelength + phase)
-    return y
+    return np.asarray(y)  # a 0-d array, not a NumPy scalar, for 0-d input
 
 
 def mirrored(scene: Scene) -> Scene:
