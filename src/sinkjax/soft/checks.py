@@ -106,7 +106,8 @@ def _ring_disagreement(
     # Wheel above the equivalent line (y down); without contact the whole ring is wheel.
     wheel_side = ~contact | (v < p[3] * u + p[4])
     wrong = jnp.where(wheel_side, 1.0 - m, m)
-    return jnp.sum(wrong * seen) / jnp.maximum(jnp.sum(seen), 1.0)
+    n_seen = jnp.sum(seen.astype(dt))
+    return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
 
 
 def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
@@ -171,7 +172,7 @@ def plausibility(
     v = ev.y_px - p[1]
     w = ev.w_line
     sw = jnp.maximum(jnp.sum(w), 1e-9)
-    above = jnp.sum(w * (v < 0)) / sw
+    above = jnp.sum(jnp.where(v < 0, w, 0.0)) / sw
     present = w > 0.5 * jnp.max(w)
     d = jnp.sqrt(u * u + v * v + 1e-12)
     i_a = jnp.argmax(jnp.where(present, u, -jnp.inf))
