@@ -1,8 +1,9 @@
 """Test set-up and the fixtures several test files share.
 
 JAX runs in float64 with strict dtype promotion and no implicit rank promotion, as in the JAX
-libraries we learn from; jaxtyping checks every annotated shape in ``sinkjax`` at run time (the
-``--jaxtyping-packages`` option in pyproject.toml's ``addopts``).
+libraries we learn from; jaxtyping checks every annotated shape of the differentiable core
+(``sinkjax.soft``, ``sinkjax.geometry``) at run time (``--jaxtyping-packages`` in
+pyproject.toml's ``addopts``).
 
 Shared fixtures (each returns a function, so a test says what it needs in its arguments):
 

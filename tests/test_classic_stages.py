@@ -15,16 +15,15 @@ from scipy import ndimage
 from scipy.optimize import least_squares
 
 from sinkjax.classic.outline import (
-    fill_holes,
     fit_circle,
-    hough_rim,
+    hough_rim_np,
     off_border,
     refine_rim,
     runs_of,
     wheel_outline,
-    wheel_region,
 )
 from sinkjax.classic.refine import ends_on_rim, subpixel_edges, x_extent_weights
+from sinkjax.classic.segmentation import fill_holes, wheel_region
 
 H, W = 240, 320
 CX, CY, R = 160.3, 100.6, 85.4  # conftest's draw_wheel default rim
@@ -113,7 +112,7 @@ def test_hough_then_refine_find_the_rim(draw_wheel, n_lugs: int, lug_h: float) -
     region = wheel_mask(draw_wheel, n_lugs=n_lugs, lug_h=lug_h, soil=lambda x: soil_y + 0 * x)
     pts, normals = wheel_outline(region)
     inner = off_border(pts, region.shape)
-    coarse = hough_rim(pts[inner], normals[inner], (H, W), (0.2 * H, 0.6 * H))
+    coarse = hough_rim_np(pts[inner], normals[inner], (H, W), (0.2 * H, 0.6 * H))
     assert coarse is not None
     cx, cy, r, votes = coarse
     bc = max(2.0, min(H, W) / 120.0)  # centre bin; radius bins are half that
@@ -132,7 +131,7 @@ def test_hough_then_refine_find_the_rim(draw_wheel, n_lugs: int, lug_h: float) -
 def test_hough_without_votes_is_none() -> None:
     pts = np.array([[5.0, 5.0]])
     away = np.array([[-1.0, 0.0]])  # votes land off the image
-    assert hough_rim(pts, away, (H, W), (50.0, 60.0)) is None
+    assert hough_rim_np(pts, away, (H, W), (50.0, 60.0)) is None
 
 
 def test_fit_circle_is_the_geometric_least_squares_circle() -> None:

@@ -14,6 +14,9 @@ from scipy.optimize import least_squares
 
 from sinkjax.soft.hough import _kasa, hough_rim, radius_range_px
 from sinkjax.soft.outline import extract_outline
+from sinkjax.soft.settings import SoftSettings
+
+SETTINGS = SoftSettings()
 
 H, W = 120, 160
 CX, CY, R = 78.4, 52.7, 41.3
@@ -42,7 +45,7 @@ def wheel_mask(
 @jax.jit
 def rim(mask: jax.Array):
     """Outline then Hough circle, compiled once for this file's (H, W)."""
-    return hough_rim(extract_outline(mask), H, W)
+    return hough_rim(extract_outline(mask, SETTINGS), H, W, SETTINGS)
 
 
 def ls_circle(x: np.ndarray, y: np.ndarray, start: tuple[float, float, float]) -> np.ndarray:
@@ -62,7 +65,7 @@ CASES = {
 @pytest.mark.parametrize("case", list(CASES))
 def test_rim_found_not_lug_tips(case: str) -> None:
     mask = jnp.asarray(wheel_mask(**CASES[case]))
-    o, c = jax.jit(extract_outline)(mask), rim(mask)
+    o, c = jax.jit(extract_outline)(mask, SETTINGS), rim(mask)
     cx, cy, r = float(c.cx_px), float(c.cy_px), float(c.r_px)
     # Lug tips stand 4 px (10 %) outside the rim; the result must be the rim, to a fraction of
     # a pixel.
@@ -110,7 +113,7 @@ def test_jit_equals_eager_and_vmap_equals_loop() -> None:
     masks = jnp.asarray(np.stack([wheel_mask(**CASES["lugs"]), wheel_mask(**CASES["plain"])]))
 
     def stage(mask):
-        return hough_rim(extract_outline(mask, capacity=900), H, W)
+        return hough_rim(extract_outline(mask, SETTINGS, capacity=900), H, W, SETTINGS)
 
     eager = stage(masks[0])
     jitted = jax.jit(stage)(masks[0])

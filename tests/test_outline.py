@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 
 from sinkjax.soft.outline import _compact, default_capacity, extract_outline, refine_outline
+from sinkjax.soft.settings import SoftSettings
+
+SETTINGS = SoftSettings()
 
 H, W = 64, 72
 CX, CY, R = 35.3, 31.6, 20.4  # a disc well inside the frame
@@ -21,8 +24,10 @@ OUTSIDE = np.array([0.45, 0.50, 0.60])
 
 # Compiled once for the (H, W) of this file: eager JAX compiles every primitive on first use,
 # which costs more than the whole stage compiled.
-_extract = jax.jit(extract_outline, static_argnames="capacity")
-_refine = jax.jit(refine_outline)
+_extract = jax.jit(
+    lambda m, capacity=None: extract_outline(m, SETTINGS, capacity), static_argnames="capacity"
+)
+_refine = jax.jit(lambda image, o: refine_outline(image, o, SETTINGS))
 
 
 def coverage(inside, ss: int = 8) -> np.ndarray:
@@ -132,7 +137,7 @@ def test_jit_equals_eager_and_vmap_equals_loop() -> None:
     images = jnp.asarray(cov * WHEEL + (1.0 - cov) * OUTSIDE)
 
     def stage(image, mask):
-        return refine_outline(image, extract_outline(mask, capacity=400))
+        return refine_outline(image, extract_outline(mask, SETTINGS, capacity=400), SETTINGS)
 
     eager = stage(images[0], masks[0])
     jitted = jax.jit(stage)(images[0], masks[0])
@@ -155,7 +160,7 @@ def test_gradients_finite_and_match_finite_differences() -> None:
     mask = jnp.asarray(coverage(disc(R - 1.0)))
 
     def loss(image, mask):
-        o = refine_outline(image, extract_outline(mask, capacity=400))
+        o = refine_outline(image, extract_outline(mask, SETTINGS, capacity=400), SETTINGS)
         return jnp.sum(o.weight * (o.x_px - CX) ** 2 + o.weight * (o.y_px - CY) ** 2)
 
     g_img, g_mask = jax.jit(jax.grad(loss, argnums=(0, 1)))(image, mask)

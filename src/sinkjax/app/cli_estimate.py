@@ -168,11 +168,12 @@ def _add_long_run_options(p: argparse.ArgumentParser) -> None:
         "long recordings (frame indices count within each video, and over all image files "
         "of the run together, in input order)"
     )
-    g.add_argument("--start", type=int, default=0, metavar="N", help="first frame index (0)")
-    g.add_argument("--stop", type=int, metavar="N", help="stop before this frame index (end)")
-    g.add_argument(
-        "--stride", type=int, default=1, metavar="K", help="measure every K-th frame (1)"
-    )
+    for flag, default, metavar, text in (
+        ("--start", 0, "N", "first frame index (0)"),
+        ("--stop", None, "N", "stop before this frame index (end)"),
+        ("--stride", 1, "K", "measure every K-th frame (1)"),
+    ):
+        g.add_argument(flag, type=int, default=default, metavar=metavar, help=text)
     g.add_argument(
         "--resume",
         action="store_true",

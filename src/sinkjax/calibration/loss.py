@@ -151,15 +151,16 @@ def boundary_contrast(
     """
     height, width = mask.shape
     cx, cy, r = circle[0], circle[1], circle[2]
-    yy, xx = jnp.mgrid[0:height, 0:width]
+    dt = mask.dtype
+    yy, xx = (g.astype(dt) for g in jnp.mgrid[0:height, 0:width])
     u, v = sign * (xx - cx), yy - cy
     side = labelled_soil_side(u, v, r, target, wheel_radius_mm) / r
     inside = u * u + v * v < (0.93 * r) ** 2
     above = inside & (side > -STRIP_FAR) & (side < -STRIP_NEAR)
     below = inside & (side > STRIP_NEAR) & (side < STRIP_FAR)
-    n_above, n_below = jnp.sum(above), jnp.sum(below)
-    wheel_missing = jnp.sum(jnp.where(above, 1.0 - mask, 0.0)) / jnp.maximum(n_above, 1)
-    soil_as_wheel = jnp.sum(jnp.where(below, mask, 0.0)) / jnp.maximum(n_below, 1)
+    n_above, n_below = jnp.sum(above).astype(dt), jnp.sum(below).astype(dt)
+    wheel_missing = jnp.sum(jnp.where(above, 1.0 - mask, 0.0)) / jnp.maximum(n_above, 1.0)
+    soil_as_wheel = jnp.sum(jnp.where(below, mask, 0.0)) / jnp.maximum(n_below, 1.0)
     return jnp.where(n_above > 0, wheel_missing, 0.0) + jnp.where(n_below > 0, soil_as_wheel, 0.0)
 
 

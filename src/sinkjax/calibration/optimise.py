@@ -136,7 +136,8 @@ def _descend(
 ) -> _Descent:
     """Adam from ``raw`` (whose loss ``out`` is known) for up to ``steps`` steps."""
     opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(steps, 1), alpha=0.1))
-    state = opt.init(raw)
+    with jax.numpy_dtype_promotion("standard"):
+        state = opt.init(raw)
     scale = 1.0
     losses: list[float] = []
     trail: list[tuple[Array, LossAndGrad]] = []
@@ -159,11 +160,15 @@ def _descend(
             # The loss is piecewise smooth: a step landed where frames stop measuring. Go back
             # to the best point, forget the momentum that carried us here, take smaller steps.
             _, raw, out = best
-            state, scale = opt.init(raw), 0.5 * scale
+            with jax.numpy_dtype_promotion("standard"):
+                state = opt.init(raw)
+            scale = 0.5 * scale
         grad = out.grad if augment is None else augment(raw, step)
-        updates, state = opt.update(
-            grad if augment is None else 0.5 * (out.grad + grad), state, raw
-        )
+        # optax's schedules mix Python floats with int32 step counts: allow that promotion
+        # here even where the user runs JAX with strict dtype promotion.
+        with jax.numpy_dtype_promotion("standard"):
+            step_grad = grad if augment is None else 0.5 * (out.grad + grad)
+            updates, state = opt.update(step_grad, state, raw)
         raw = raw + scale * updates
     return _Descent(losses, best[0], best[1], best[2], trail, early)
 
