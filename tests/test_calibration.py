@@ -332,8 +332,8 @@ def test_weak_boundary_is_penalised_with_a_gradient(fake_measure) -> None:
 
 def test_calibrate_converges_on_stand_in_and_is_deterministic(fake_measure) -> None:
     frames = fake_frames()
-    a = C.calibrate(frames, FAKE_RIG, steps=80, learning_rate=0.1, patience=80)
-    b = C.calibrate(frames, FAKE_RIG, steps=80, learning_rate=0.1, patience=80)
+    a = C.calibrate(frames, FAKE_RIG, steps=80, learning_rate=0.1, patience=80, grid=None)
+    b = C.calibrate(frames, FAKE_RIG, steps=80, learning_rate=0.1, patience=80, grid=None)
     assert same_rig(a.rig, b.rig) and a.losses == b.losses
     assert a.loss_after < 0.01 * a.loss_before
     seg = a.rig.segmentation.as_dict()
@@ -403,7 +403,7 @@ def test_calibrate_backs_off_when_a_step_lands_where_frames_fail(
     monkeypatch.setattr(L, "measure", cliff)
     monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
     C.loss_and_grad.clear_cache()
-    res = C.calibrate(fake_frames(), FAKE_RIG, steps=80, learning_rate=0.5, patience=80)
+    res = C.calibrate(fake_frames(), FAKE_RIG, steps=80, learning_rate=0.5, patience=80, grid=None)
     jumps = [i for i, x in enumerate(res.losses) if x > C.BACKTRACK * min(res.losses[: i + 1])]
     assert jumps, res.losses  # it did step over the cliff ...
     assert res.after.n_ok == 2  # ... and came back (without backing off it stays at 1.6)
@@ -412,10 +412,71 @@ def test_calibrate_backs_off_when_a_step_lands_where_frames_fail(
 
 
 def test_calibrate_keeps_the_best_step_and_stops_early(fake_measure) -> None:
-    res = C.calibrate(fake_frames(), FAKE_RIG, steps=200, learning_rate=3.0, patience=5)
+    res = C.calibrate(fake_frames(), FAKE_RIG, steps=200, learning_rate=3.0, patience=5, grid=None)
     assert len(res.losses) < 201
     assert res.losses[res.best_step] == min(res.losses)
     assert len(res.losses) - 1 - res.best_step <= 5
+
+
+def test_grid_start_escapes_a_plateau_and_is_never_worse_than_the_grid(
+    fake_measure, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real = L.measure
+
+    def plateau(image, seg, **kw):  # nothing measures unless P_d(S) > 0.6: flat loss below
+        est = real(image, seg, **kw)
+        return types.SimpleNamespace(**{**vars(est), "status": jnp.where(seg.p_d_sat > 0.6, 0, 3)})
+
+    monkeypatch.setattr(L, "measure", plateau)
+    monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
+    C.loss_and_grad.clear_cache()
+    stuck = C.calibrate(fake_frames(), FAKE_RIG, steps=30, grid=None)
+    assert stuck.loss_after == stuck.loss_before  # gradient descent alone cannot move
+    res = C.calibrate(fake_frames(), FAKE_RIG, steps=30)
+    assert res.loss_after <= res.grid_best_loss < stuck.loss_after
+    assert res.after.n_ok == 2 and res.loss_after < 1e-2 * res.loss_before
+    # 0.65 is the only grid value of P_d(S) that measures; Adam then finds 28 / 40 = 0.7.
+    assert res.rig.segmentation.as_dict()["p_d_sat"] == pytest.approx(0.7, abs=5e-3)
+    assert "best grid point" in res.summary() and "leave-one-out" in res.summary()
+
+
+def test_calibration_checks_convergence_disagreement_and_leave_one_out(fake_measure) -> None:
+    short = C.calibrate(fake_frames(), FAKE_RIG, steps=3, learning_rate=0.01, grid=None)
+    assert short.checks is not None and not short.checks.converged
+    assert "NOT converged" in short.summary()
+    # Three frames agree on 28 mm (P_d(S) = 0.7); "d" says 5 mm with the same picture.
+    targets = np.array([[28.0, np.nan, np.nan]] * 3 + [[5.0, np.nan, np.nan]])
+    frames = C.LabelledFrames(np.zeros((4, *FAKE_SHAPE[1:]), np.uint8), targets, tuple("abcd"))
+    res = C.calibrate(frames, FAKE_RIG, steps=80, learning_rate=0.1, grid=None)
+    assert res.checks is not None and res.checks.converged
+    assert [d[0] for d in res.checks.disagreeing] == ["d"]
+    # Leave-one-out: without "d" the others choose ~28 mm, so "d" is 23 mm (460 %) off; each of
+    # the others is chosen for by two 28s and one 5: the mean of the losses, near 28 mm still.
+    loo = {r[0]: r for r in res.checks.loo}
+    assert loo["d"][1] == pytest.approx(23.0, abs=0.5) and loo["d"][5]
+    assert all(loo[n][1] < 2.5 for n in "abc")
+
+
+def test_run_checks_by_hand() -> None:
+    frames = C.LabelledFrames(
+        np.zeros((2, 1, 1, 3), np.uint8), np.array([[10.0, 20.0, np.nan], [10.0, 20.0, 30.0]]),
+        ("x", "y"),
+    )  # fmt: skip
+    # Two evaluated points: the first fits x, the second fits y.
+    losses = [np.array([0.0, 8.0]), np.array([6.0, 0.0])]
+    values = [
+        np.array([[10, 20, 0], [12, 20, 30]], float),
+        np.array([[13, 20, 0], [10, 20, 30]], float),
+    ]
+    status = [np.zeros(2, int), np.array([0, 3])]
+    tail = [9.0] + [8.0] * 6  # the best loss has not moved over the last 5 steps
+    chk = C.run_checks(losses, values, status, 0, frames, tail, stopped_early=False)
+    # Leaving x out, y's loss picks point 2 (where x reads 13: 3 mm); leaving y out, point 1,
+    # where y reads 12 mm (2 mm, 20 %). Point 2 has y failed, but y was left out there.
+    assert chk.loo[0][:3] == ("x", 3.0, 0.3) and chk.loo[1][:3] == ("y", 2.0, 0.2)
+    assert chk.converged
+    # At point 1, y's loss per value (8 / 3) is above 2 while x's is 0: y disagrees.
+    assert [d[0] for d in chk.disagreeing] == ["y"]
 
 
 # ----------------------------------------------------------------------------- augmentations
@@ -564,8 +625,8 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     from sinkjax.soft.fit import build_evidence
     from sinkjax.soft.hough import hough_rim
     from sinkjax.soft.outline import extract_outline, refine_outline
-    from sinkjax.soft.settings import SoftSettings
     from sinkjax.soft.segmentation import wheel_mask
+    from sinkjax.soft.settings import SoftSettings
 
     rig = load_rig(recording / "rig.toml")
     frames = C.read_labels(recording / "LABELS.csv", rig)

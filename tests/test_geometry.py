@@ -51,10 +51,53 @@ def test_sinkage_and_angles_by_hand() -> None:
     assert math.degrees(t1) == pytest.approx(90 - math.degrees(math.atan(4 / 3)))
     # B = (-30, 40): theta2 = 90 deg + atan(40 / -30), the same angle from the vertical.
     assert float(sj.exit_angle_rad(-30.0, 40.0)) == pytest.approx(t1)
-    # x = 0 -> 0 by definition (Eqs. 2-3), with a finite gradient.
+    # x = 0: the point is straight below O, angle 0, with the gradient of atan2: 1 / y.
     assert float(sj.entry_angle_rad(0.0, 40.0)) == 0.0
-    g = jax.grad(lambda x: sj.entry_angle_rad(x, 40.0) + sj.exit_angle_rad(x, 40.0))(0.0)
-    assert np.isfinite(g)
+    g = jax.grad(lambda x: sj.entry_angle_rad(x, 40.0) - sj.exit_angle_rad(x, 40.0))(0.0)
+    assert float(g) == pytest.approx(2 / 40.0)
+
+
+def test_atan2_angles_equal_the_papers_where_it_applies() -> None:
+    # A ahead of O (x_A > 0) and B behind it (x_B < 0): conventions §1 = Eqs. 2-3 as printed.
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        x, y = rng.uniform(0.5, 150), rng.uniform(-100, 150)
+        assert float(sj.entry_angle_rad(x, y)) == pytest.approx(
+            math.pi / 2 - math.atan(y / x), abs=1e-12
+        )
+        assert float(sj.exit_angle_rad(-x, y)) == pytest.approx(
+            math.pi / 2 + math.atan(y / -x), abs=1e-12
+        )
+
+
+def test_atan2_angles_are_continuous_and_go_negative() -> None:
+    # A point on the rim below O sweeping through x = 0: the angle is its polar angle from the
+    # downward vertical, with no jump (the paper's form jumps from 0 to 180 deg there).
+    r = 100.0
+    phi = np.linspace(-0.4, 0.4, 81)
+    xs, ys = r * np.sin(phi), r * np.cos(phi)
+    t1 = np.asarray(sj.entry_angle_rad(jnp.asarray(xs), jnp.asarray(ys)))
+    t2 = np.asarray(sj.exit_angle_rad(jnp.asarray(xs), jnp.asarray(ys)))
+    np.testing.assert_allclose(t1, phi, atol=1e-12)
+    np.testing.assert_allclose(t2, -phi, atol=1e-12)
+    # Hollow terrain: the soil touches only the entry half, B at x_B > 0 ahead of O -> theta2 < 0.
+    cx, cy = 0.0, 0.0
+    x = np.linspace(10.0, 80.0, 400)
+    y = np.sqrt(r * r - 10.0**2) - 0.6 * (x - 10.0)
+    g = sj.geometry_from_boundary(jnp.asarray(x), jnp.asarray(y), cx, cy, r)
+    assert math.degrees(float(g.theta2_rad)) == pytest.approx(
+        -math.degrees(math.asin(10.0 / r)), abs=1e-9
+    )
+    assert float(g.theta1_rad) > 0
+
+
+def test_angles_have_finite_gradients_at_the_origin() -> None:
+    for f in (sj.entry_angle_rad, sj.exit_angle_rad):
+        assert float(f(0.0, 0.0)) == 0.0
+        gx, gy = jax.grad(lambda x, y, f=f: f(x, y), argnums=(0, 1))(0.0, 0.0)
+        assert np.isfinite(float(gx)) and np.isfinite(float(gy))
+    gv = jax.vmap(jax.grad(sj.exit_angle_rad))(jnp.array([0.0, 1.0]), jnp.array([0.0, 0.0]))
+    assert np.all(np.isfinite(np.asarray(gv)))
 
 
 def test_flat_ground_identity_and_mirror() -> None:

@@ -258,6 +258,27 @@ def test_truth_ends_on_rim_and_matches_geometry_module():
         assert math.degrees(float(g.theta2_rad)) == pytest.approx(t.theta2_deg, abs=1e-8)
 
 
+def test_truth_angles_atan2_form():
+    # A ahead of O and B behind it: the paper's Eqs. 2-3 as printed.
+    t = synth.true_geometry(_scene("bulldozed", 4, preset="full"))
+    (ua, va), (ub, vb) = t.a_px, t.b_end_px
+    assert ua > 0 > ub
+    assert t.theta1_deg == pytest.approx(90 - math.degrees(math.atan(va / ua)), abs=1e-9)
+    assert t.theta2_deg == pytest.approx(90 + math.degrees(math.atan(vb / ub)), abs=1e-9)
+    # A 45-degree slope rising to the entry side that touches only the entry half of the rim:
+    # B lies ahead of O, so theta2 = atan2(-x_B, y_B) < 0 (docs/conventions.md §1).
+    r, cy = 100.0, 120.0
+    scene = synth.Scene(
+        width=320, height=240, centre_x_px=160.0, centre_y_px=cy, radius_px=r,
+        soil_level_px=cy + 1.2 * r, tilt=-1.0,
+    )  # fmt: skip
+    t = synth.true_geometry(scene)
+    (ua, va), (ub, vb) = t.a_px, t.b_end_px
+    assert t.contact and ua > ub > 0
+    assert t.theta2_deg == pytest.approx(math.degrees(math.atan2(-ub, vb)), abs=1e-9)
+    assert t.theta2_deg < -5 and t.theta1_deg > 0
+
+
 def test_travel_left_swaps_angles_and_mirror_keeps_truth():
     scene = _scene("bulldozed", 8, preset="full")
     right = synth.true_geometry(scene)
@@ -359,3 +380,45 @@ def test_write_recording(tmp_path):
     img, _ = synth.render(scenes[1], frame_seed(0, 1))
     disk = cv2.imread(str(clean / "frame_0001.png"))[..., ::-1]
     assert np.array_equal(img, disk)
+
+
+def test_hard_presets_are_hard_and_leave_the_others_alone():
+    from sinkjax.synth.hard import HARD_PRESETS, harden
+
+    assert synth.PRESETS[:6] == ("clean", "full", "shading", "dust", "cast", "lowlight")
+    # A hard set-up is the full set-up drawn first, made worse: same geometry and soil.
+    full = camera_setup(np.random.default_rng(9), 320, 240, "full")
+    for preset in HARD_PRESETS:
+        hard = camera_setup(np.random.default_rng(9), 320, 240, preset)
+        assert (hard.radius_px, hard.soil_rgb, hard.n_lugs) == (
+            full.radius_px,
+            full.soil_rgb,
+            full.n_lugs,
+        )
+        assert len(hard.specular) >= 3 and max(a for *_, a in hard.specular) >= 0.4
+    with pytest.raises(ValueError, match="hard_"):
+        harden(np.random.default_rng(0), full, "full")
+
+    def hue(rgb):
+        return colorsys.rgb_to_hsv(*rgb)[0] * 360
+
+    def gap(a, b):
+        d = abs(a - b) % 360
+        return min(d, 360 - d)
+
+    # The cast tints the soil towards the wheel's hue: the hue gap shrinks.
+    for seed in range(4):
+        s = camera_setup(np.random.default_rng(seed), 320, 240, "hard_cast")
+        cast = np.asarray(s.cast_rgb)
+        before = gap(hue(s.soil_rgb), hue(s.wheel_rgb))
+        after = gap(hue(np.asarray(s.soil_rgb) * cast), hue(np.asarray(s.wheel_rgb) * cast))
+        assert after < before - 5
+    # hard_mix recordings cycle in hollow_ahead: soil only on the entry half, B ahead of O.
+    scenes = synth.recording_scenes(
+        np.random.default_rng(1), 6, preset="hard_mix", width=240, height=180
+    )
+    assert [s.terrain for s in scenes] == [*synth.TERRAINS, "hollow_ahead"]
+    t = synth.true_geometry(scenes[-1])
+    assert t.b_end_px[0] > 0 and t.theta2_deg < 0 < t.theta1_deg
+    img, _ = synth.render(scenes[-1], seed=0)
+    assert img.shape == (180, 240, 3)

@@ -92,25 +92,37 @@ def sinkage_px(
     return jnp.asarray(radius_px) - jnp.abs(b_px) / jnp.sqrt(k * k + 1.0)
 
 
-def _safe_ratio(num: Array, den: Array) -> tuple[Array, Array]:
-    nonzero = den != 0
-    return nonzero, num / jnp.where(nonzero, den, 1.0)
+def _safe_atan2(num: Array, den: Array) -> Array:
+    """atan2(num, den), 0 at (0, 0), with finite gradients there.
+
+    Double where: atan2's gradient divides by num^2 + den^2, so the untaken branch at the origin
+    must see a harmless point too, or its NaN leaks into grads.
+    """
+    origin = (num == 0) & (den == 0)
+    return jnp.where(origin, 0.0, jnp.arctan2(num, jnp.where(origin, 1.0, den)))
 
 
 def entry_angle_rad(
     x_a_px: Float[ArrayLike, "*b"], y_a_px: Float[ArrayLike, "*b"]
 ) -> Float[Array, "*b"]:
-    """Eq. 2: theta1 = pi/2 - atan(y_A / x_A), or 0 when x_A = 0 (wheel frame, y down)."""
-    nonzero, ratio = _safe_ratio(jnp.asarray(y_a_px), jnp.asarray(x_a_px))
-    return jnp.where(nonzero, jnp.pi / 2 - jnp.arctan(ratio), 0.0)
+    """theta1 = atan2(x_A, y_A) (docs/conventions.md §1; wheel frame, y down).
+
+    The angle from the downward vertical through O to A, positive towards the entry side and
+    continuous through x_A = 0 (negative when A lies past the bottom of the rim). Where
+    x_A > 0 it equals the paper's Eq. 2, pi/2 - atan(y_A / x_A). 0 at A = O.
+    """
+    return _safe_atan2(jnp.asarray(x_a_px), jnp.asarray(y_a_px))
 
 
 def exit_angle_rad(
     x_b_px: Float[ArrayLike, "*b"], y_b_px: Float[ArrayLike, "*b"]
 ) -> Float[Array, "*b"]:
-    """Eq. 3: theta2 = pi/2 + atan(y_B / x_B), or 0 when x_B = 0 (wheel frame, y down)."""
-    nonzero, ratio = _safe_ratio(jnp.asarray(y_b_px), jnp.asarray(x_b_px))
-    return jnp.where(nonzero, jnp.pi / 2 + jnp.arctan(ratio), 0.0)
+    """theta2 = atan2(-x_B, y_B) (docs/conventions.md §1; wheel frame, y down).
+
+    Positive towards the exit side, continuous through x_B = 0 (negative when B lies ahead of O).
+    Where x_B < 0 it equals the paper's Eq. 3, pi/2 + atan(y_B / x_B). 0 at B = O.
+    """
+    return _safe_atan2(-jnp.asarray(x_b_px), jnp.asarray(y_b_px))
 
 
 def flat_ground_angle_rad(

@@ -22,6 +22,7 @@ class Status(enum.StrEnum):
     BAD_IMAGE = "bad_image"
     UNREADABLE = "unreadable"
     ERROR = "error"
+    IMPLAUSIBLE = "implausible"
 
     @property
     def code(self) -> int:
@@ -67,4 +68,9 @@ _MESSAGES: dict[Status, str] = {
     Status.BAD_IMAGE: "the image cannot be measured (too small or an unsupported pixel type)",
     Status.UNREADABLE: "the file could not be read or decoded as an image",
     Status.ERROR: "the estimator raised an error on this frame",
+    Status.IMPLAUSIBLE: (
+        "the fitted rim and boundary do not explain the image (the segmentation did not "
+        "understand this frame); the values are shown but not trustworthy: calibrate the "
+        "segmentation on a few labelled frames"
+    ),
 }

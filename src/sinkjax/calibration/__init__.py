@@ -1,9 +1,11 @@
 """Calibration: tune the segmentation thresholds to a few hand-labelled frames by gradient.
 
 ``labels`` reads and checks LABELS.csv -> ``loss`` is the robust error of the soft estimator on
-those frames, differentiable in the thresholds -> ``optimise`` runs Adam on it (back-off, early
-stop) and reports the calibrated rig; ``augment`` relights frames so the thresholds survive a
-moving lamp; ``cli`` is ``sinkjax calibrate``. The public names are re-exported here, flat.
+those frames, differentiable in the thresholds -> ``optimise`` scores a coarse grid and runs Adam
+from its best points (back-off, early stop) and reports the calibrated rig; ``checks`` says
+whether it converged, which frames disagree and the leave-one-out error; ``augment``
+relights frames so the thresholds survive a moving lamp; ``cli`` is ``sinkjax calibrate``.
+The public names are re-exported here, flat.
 """
 
 from .augment import (
@@ -11,6 +13,7 @@ from .augment import (
     AugmentConfig as AugmentConfig,
     augment as augment,
 )
+from .checks import Checks as Checks, run_checks as run_checks
 from .labels import (
     LABEL_COLUMNS as LABEL_COLUMNS,
     QUANTITIES as QUANTITIES,
@@ -32,6 +35,7 @@ from .loss import (
 )
 from .optimise import (
     BACKTRACK as BACKTRACK,
+    GRID as GRID,
     CalibrationResult as CalibrationResult,
     Errors as Errors,
     calibrate as calibrate,

@@ -1,17 +1,24 @@
-"""Calibration optimiser: Adam on the raw thresholds, with back-off, early stop and a report.
+"""Calibration optimiser: a coarse grid, then Adam from its best points; checks and a report.
 
-The loss is piecewise smooth (a frame stops measuring when a threshold crosses a point), so the
-loop keeps the best point seen, goes back there with a smaller step when a step lands where
-frames fail, and stops once the loss has not improved for a while.
+The loss is piecewise smooth (a frame stops measuring when a threshold crosses a point) and
+gradient descent from a mask that is far off can sit on a plateau. So calibration first scores a
+coarse grid over P_d/P_a of hue and saturation (:data:`GRID`, plus the rig's own point), then
+runs Adam from the best few grid points (a short probe each, the rest of the steps from the best
+probe) and keeps the best point seen anywhere: the result is never worse, on the labelled frames,
+than the grid's best point. Each descent keeps its best point, goes back there with a smaller step
+when a step lands where frames fail, and stops once the loss has not improved for a while.
+``checks.py`` then says whether it converged, which labelled frames disagree with the rest, and
+the leave-one-out error.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,11 +29,21 @@ from jaxtyping import Array, PRNGKeyArray
 from ..rig import Rig, SegmentationParams
 from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig
+from .checks import Checks, run_checks
 from .labels import LabelledFrames
 from .loss import LossAndGrad, from_raw, loss_and_grad, to_raw
 
 BACKTRACK = 2.0  # a loss above this times the best so far sends Adam back to the best point
 _OK = Status.OK.code
+# The coarse grid (16 points) around the defaults (P_d(H) 0.9, P_a(H) 1.1, P_d(S) 0.5,
+# P_a(S) 1.8): narrow and wide bands in each direction.
+GRID: dict[str, tuple[float, ...]] = {
+    "p_d_hue": (0.8, 0.95),
+    "p_a_hue": (1.05, 1.2),
+    "p_d_sat": (0.25, 0.65),
+    "p_a_sat": (1.4, 2.5),
+}
+N_STARTS = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,14 +91,15 @@ class CalibrationResult:
     before: Errors
     after: Errors
     seconds: float
-
-    @property
-    def loss_before(self) -> float:
-        return self.losses[0]
+    loss_before: float = math.nan  # the rig's own thresholds
+    after_loss: float = math.nan
+    grid_best_loss: float = math.nan  # the best grid point's (NaN without a grid)
+    checks: Checks | None = None
 
     @property
     def loss_after(self) -> float:
-        return self.losses[self.best_step]
+        """The calibrated rig's loss (the lowest seen anywhere, grid points included)."""
+        return self.after_loss
 
     def summary(self) -> str:
         params = ", ".join(f"{k} = {v:.4g}" for k, v in self.rig.segmentation.as_dict().items())
@@ -92,8 +110,67 @@ class CalibrationResult:
                 f"median |error| before: {self.before.line()}",
                 f"median |error| after:  {self.after.line()}",
                 f"[segmentation] {params}",
+                *([] if self.checks is None else self.checks.lines(self.grid_best_loss)),
             ]
         )
+
+
+class _Descent(NamedTuple):
+    losses: list[float]
+    best_step: int
+    raw: Array
+    out: LossAndGrad
+    trail: list[tuple[Array, LossAndGrad]]  # every point evaluated, for the checks
+    stopped_early: bool
+
+
+def _descend(
+    call: Callable[..., LossAndGrad],
+    raw: Array,
+    out: LossAndGrad,
+    steps: int,
+    learning_rate: float,
+    patience: int,
+    augment: Callable[[Array, int], Array] | None,
+    on_step: Callable[[float], None],
+) -> _Descent:
+    """Adam from ``raw`` (whose loss ``out`` is known) for up to ``steps`` steps."""
+    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(steps, 1), alpha=0.1))
+    with jax.numpy_dtype_promotion("standard"):
+        state = opt.init(raw)
+    scale = 1.0
+    losses: list[float] = []
+    trail: list[tuple[Array, LossAndGrad]] = []
+    best = (0, raw, out)
+    early = False
+    for step in range(steps + 1):
+        if step > 0:
+            out = call(raw)
+            trail.append((raw, out))
+        losses.append(float(out.loss))
+        if losses[-1] < losses[best[0]]:
+            best = (step, raw, out)
+        on_step(losses[-1])
+        if step == steps:
+            break
+        if step - best[0] >= patience:
+            early = True
+            break
+        if losses[-1] > BACKTRACK * losses[best[0]]:
+            # The loss is piecewise smooth: a step landed where frames stop measuring. Go back
+            # to the best point, forget the momentum that carried us here, take smaller steps.
+            _, raw, out = best
+            with jax.numpy_dtype_promotion("standard"):
+                state = opt.init(raw)
+            scale = 0.5 * scale
+        grad = out.grad if augment is None else augment(raw, step)
+        # optax's schedules mix Python floats with int32 step counts: allow that promotion
+        # here even where the user runs JAX with strict dtype promotion.
+        with jax.numpy_dtype_promotion("standard"):
+            step_grad = grad if augment is None else 0.5 * (out.grad + grad)
+            updates, state = opt.update(step_grad, state, raw)
+        raw = raw + scale * updates
+    return _Descent(losses, best[0], best[1], best[2], trail, early)
 
 
 def calibrate(
@@ -108,20 +185,30 @@ def calibrate(
     seed: int = 0,
     progress: bool = False,
     callback: Callable[[int, float], None] | None = None,
+    grid: dict[str, tuple[float, ...]] | None = GRID,
+    starts: int = N_STARTS,
 ) -> CalibrationResult:
-    """Tune ``rig.segmentation`` to labelled frames with Adam; returns the calibrated rig.
+    """Tune ``rig.segmentation`` to labelled frames: grid, then Adam; returns the calibrated rig.
 
-    Deterministic (``seed`` only drives the augmentations). Keeps the parameters with the lowest
-    loss on the frames as labelled (measured at every step, also under ``augment``); a step that
-    more than doubles it (frames stopped measuring) goes back there with half the step size;
-    stops after ``patience`` steps without a better loss. With ``augment`` each step's gradient
-    averages the frames as labelled and under a random lighting change. Raises ValueError for
-    ``steps`` < 0 or ``learning_rate`` <= 0.
+    Deterministic (``seed`` only drives the augmentations). Scores the rig's own point and every
+    point of ``grid`` (P_d/P_a values; None: no grid, Adam from the rig alone), then runs Adam
+    from the ``starts`` best of them: ``steps // (2 starts)`` probe steps each, the remaining
+    steps from the best probe's best point. The calibrated rig is the lowest loss seen anywhere
+    (grid points included). Each descent keeps its best point, goes back there with half the step
+    size after a step that more than doubles the loss (frames stopped measuring) and stops after
+    ``patience`` steps without improvement. With ``augment`` each step's gradient averages the
+    frames as labelled and under a random lighting change. The result's ``checks`` say whether
+    the last descent converged, which frames disagree with the rest, and the leave-one-out error.
+    ``losses`` is the final descent's loss per step (from its starting point).
+    Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0 or ``starts`` < 1.
     """
     from tqdm import tqdm
 
-    if steps < 0 or not learning_rate > 0:
-        raise ValueError(f"need steps >= 0 and learning_rate > 0, got {steps}, {learning_rate}")
+    if steps < 0 or not learning_rate > 0 or starts < 1:
+        raise ValueError(
+            f"need steps >= 0, learning_rate > 0, starts >= 1; got {steps}, {learning_rate}, "
+            f"{starts}"
+        )
     t0 = time.perf_counter()
     images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
     static = dict(
@@ -133,60 +220,76 @@ def calibrate(
         # Positional arrays, keyword statics: one compiled function for every caller.
         return loss_and_grad(r, images, targets, k, **static, **augmenting)  # type: ignore[arg-type]
 
+    def noisy(r: Array, step: int) -> Array:
+        k = jax.random.fold_in(key, step)
+        return call(r, k, use_augment=True, config=augment_config).grad
+
     dt = jnp.result_type(float)
-    raw = to_raw(rig.segmentation).astype(dt)
-    first = out = call(raw)
-    opt = optax.adam(optax.cosine_decay_schedule(learning_rate, max(steps, 1), alpha=0.1))
-    state = opt.init(raw)
-    scale = 1.0
-    losses: list[float] = []
-    best = (0, raw, out)
+    raw0 = to_raw(rig.segmentation).astype(dt)
+    first = call(raw0)
+    points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
+    base = rig.segmentation.as_dict()
+    for combo in itertools.product(*(grid or {}).values()):
+        seg = SegmentationParams(**{**base, **dict(zip(grid or {}, combo, strict=True))})  # type: ignore[arg-type]
+        r = to_raw(seg).astype(dt)
+        points.append((r, call(r)))
+    n_grid = len(points)
+    order = sorted(range(n_grid), key=lambda i: float(points[i][1].loss))
+    chosen = order[: min(starts, n_grid)] if grid else [0]
+    probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))
     bar = tqdm(total=steps, desc="calibrate", unit="step", disable=not progress)
-    for step in range(steps + 1):
-        if step > 0:
-            out = call(raw)
-        losses.append(float(out.loss))
-        if losses[-1] < losses[best[0]]:
-            best = (step, raw, out)
+    counter = [0]
+
+    def on_step(loss: float) -> None:
         if callback is not None:
-            callback(step, losses[-1])
-        if step == steps or step - best[0] >= patience:
-            break
-        if losses[-1] > BACKTRACK * losses[best[0]]:
-            # The loss is piecewise smooth: a step landed where frames stop measuring. Go back
-            # to the best point, forget the momentum that carried us here, take smaller steps.
-            _, raw, out = best
-            with jax.numpy_dtype_promotion("standard"):
-                state = opt.init(raw)
-            scale = 0.5 * scale
-        grad = out.grad
-        if augment:
-            noisy = call(
-                raw, jax.random.fold_in(key, step), use_augment=True, config=augment_config
-            )
-            grad = 0.5 * (grad + noisy.grad)
-        # optax's schedules mix Python floats with int32 step counts: allow that promotion
-        # here even where the user runs JAX with strict dtype promotion.
-        with jax.numpy_dtype_promotion("standard"):
-            updates, state = opt.update(grad, state, raw)
-        raw = raw + scale * updates
-        bar.set_postfix(loss=f"{losses[-1]:.4g}", best=f"{losses[best[0]]:.4g}")
-        bar.update()
+            callback(counter[0], loss)
+        counter[0] += 1
+
+    aug = noisy if augment else None
+    runs = []
+    for i in chosen:
+        d = _descend(call, *points[i], probe, learning_rate, patience, aug, on_step)
+        points += d.trail
+        runs.append(d)
+        bar.update(len(d.losses) - 1)
+    last = min(runs, key=lambda d: float(d.out.loss))
+    if len(chosen) > 1 and steps - probe * len(chosen) > 0:
+        last = _descend(
+            call, last.raw, last.out, steps - probe * len(chosen), learning_rate, patience, aug,
+            on_step,
+        )  # fmt: skip
+        points += last.trail
+        bar.update(len(last.losses) - 1)
     bar.close()
-    step_best, raw_best, out_best = best
+    i_best = min(range(len(points)), key=lambda i: float(points[i][1].loss))
+    raw_best, out_best = points[i_best]
     calibrated = Rig(
         wheel_radius_mm=rig.wheel_radius_mm,
         confidence_rect=rig.confidence_rect,
         travel=rig.travel,
         segmentation=_python_floats(from_raw(raw_best)),
     )
+    losses = last.losses
+    grid_best = min(float(points[i][1].loss) for i in range(1, n_grid)) if grid else math.nan
     return CalibrationResult(
         rig=calibrated,
         losses=tuple(losses),
-        best_step=step_best,
+        best_step=int(np.argmin(losses)),
         before=_errors(first, frames.targets),
         after=_errors(out_best, frames.targets),
         seconds=time.perf_counter() - t0,
+        loss_before=float(first.loss),
+        after_loss=float(out_best.loss),
+        grid_best_loss=grid_best,
+        checks=run_checks(
+            [np.asarray(o.frames.loss) for _, o in points],
+            [np.asarray(o.frames.values) for _, o in points],
+            [np.asarray(o.frames.status) for _, o in points],
+            i_best,
+            frames,
+            last.losses,
+            last.stopped_early,
+        ),
     )
 
 

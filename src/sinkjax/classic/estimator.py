@@ -127,7 +127,12 @@ def _searched(r_min: float, r_max: float, hinted: bool) -> str:
 
 
 def estimate_classic(
-    image: np.ndarray, rig: Rig, name: str = "", *, refine: bool = False
+    image: np.ndarray,
+    rig: Rig,
+    name: str = "",
+    *,
+    refine: bool = False,
+    recording_radius_px: float | None = None,
 ) -> FrameResult:
     """Sinkage and entry/exit angles of one frame by the paper's classic pipeline.
 
@@ -141,7 +146,9 @@ def estimate_classic(
     ``refine``, ``fit_failed`` also covers a binary image that lost part of the wheel face (an
     outline dipping inside the rim above O), which would otherwise read as a wrong sinkage.
     Never raises for bad image content. The classic method has no uncertainty: the ``*_std_*``
-    fields stay None.
+    fields stay None. A result whose own outputs are implausible (:func:`implausibility`; with
+    ``recording_radius_px``, the recording's rim radius, also a rim far from it) keeps its
+    numbers under status ``implausible`` with the reason.
     """
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
@@ -272,9 +279,11 @@ def estimate_classic(
         a_px=to_img(a_uv),
         b_px=to_img(b_uv),
     )
+    why = implausibility(uv[idx], a_uv, b_uv, r, margin, recording_radius_px)
     return FrameResult(
         image=name,
-        status=Status.OK,
+        status=Status.IMPLAUSIBLE if why else Status.OK,
+        message=why,
         sinkage_mm=z0 * rig.wheel_radius_mm / r,
         theta1_deg=t1,
         theta2_deg=t2,
@@ -283,3 +292,54 @@ def estimate_classic(
         radius_px=r,
         overlay=overlay,
     )
+
+
+# A rim radius further than this fraction from the recording's is another circle (the camera is
+# fixed to the wheel: the rim is the same in every frame, docs/conventions.md §2).
+MAX_RADIUS_DEVIATION = 0.05
+# A boundary end further inside the rim than this fraction of r (beyond the margin) never met it.
+MAX_END_GAP_FRACTION = 0.1
+
+
+def implausibility(
+    boundary_uv: np.ndarray,
+    a_uv: np.ndarray,
+    b_uv: np.ndarray,
+    r: float,
+    margin: float,
+    recording_radius_px: float | None = None,
+) -> str:
+    """Why the classic method's own outputs cannot describe a wheel in soil ("" if they can).
+
+    ``boundary_uv`` (n, 2) are the wheel-soil boundary points in the wheel frame (px), A and B
+    its ends, ``r`` the rim radius and ``margin`` the band inside the rim that is not boundary.
+    The soil cannot reach above the wheel centre (the confidence rectangle is above the hub),
+    the boundary must meet the rim at both ends, and with ``recording_radius_px`` the rim must
+    be the recording's.
+    """
+    if recording_radius_px is not None and abs(r - recording_radius_px) > max(
+        3.0, MAX_RADIUS_DEVIATION * recording_radius_px
+    ):
+        return (
+            f"rim radius {r:.1f} px is far from the recording's {recording_radius_px:.1f} px: "
+            "another circle was taken for the rim"
+        )
+    if np.mean(boundary_uv[:, 1] < 0.0) > 0.05:
+        return "the wheel-soil boundary reaches above the wheel centre (segmentation?)"
+    gap = max(r - math.hypot(*a_uv), r - math.hypot(*b_uv))
+    if gap > margin + max(3.0, MAX_END_GAP_FRACTION * r):
+        return (
+            f"the wheel-soil boundary stops {gap:.0f} px short of the rim: it is not the soil "
+            "surface (segmentation?)"
+        )
+    return ""
+
+
+def recording_radius_px(results: list[FrameResult]) -> float | None:
+    """The recording's rim radius: the median over its frames with a rim (None if none has)."""
+    radii = [
+        float(res.radius_px)
+        for res in results
+        if res.status in (Status.OK, Status.NO_CONTACT) and res.radius_px is not None
+    ]
+    return float(np.median(radii)) if radii else None

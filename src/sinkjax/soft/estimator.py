@@ -17,6 +17,7 @@ from ..geometry import from_wheel_frame, travel_sign
 from ..result import FrameResult, Overlay, failed, no_contact
 from ..rig import Rig, SegmentationParams, rect_problem, rim_hint_range_px
 from ..status import Status
+from .checks import message as check_message, plausibility
 from .fit import build_evidence, fit
 from .hough import hough_rim, radius_range_px
 from .model import end_point, measurements
@@ -53,6 +54,7 @@ class SoftEstimate(eqx.Module):
     # A and B in the wheel frame (u, v) px: computed here so that turning a frame into a row
     # needs no JAX call outside the compiled function.
     ends_uv_px: Float[Array, "2 2"]
+    check: Int[Array, ""]  # soft.checks: 0 plausible, else which test failed
 
 
 def measure(
@@ -129,15 +131,17 @@ def measure_from_mask(
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
-    std = measurement_std(p, cov, wheel_radius_mm, uncertainty)
     contact = jnp.sum(ev.w_line) >= s.min_boundary_points
+    check = plausibility(image, mask, p, ev, contact)
+    std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
+    measured = jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code)
     status = jnp.where(
         circle.support < s.min_rim_support,
         Status.NO_WHEEL.code,
         jnp.where(
             ~res.ok,
             Status.FIT_FAILED.code,
-            jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code),
+            jnp.where(check.plausible, measured, Status.IMPLAUSIBLE.code),
         ),
     )
     zero_if_no_contact = jnp.where(contact, 1.0, 0.0)
@@ -155,6 +159,7 @@ def measure_from_mask(
         boundary_x_px=ev.x_px,
         boundary_y_px=ev.y_px,
         ends_uv_px=jnp.stack([end_point(p[5], p[6], p[2], 1.0), end_point(p[7], p[8], p[2], -1.0)]),
+        check=check.code,
     )
 
 
@@ -323,6 +328,8 @@ def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str =
     )
     if status == Status.NO_CONTACT:
         return no_contact(name, (cx, cy), r, overlay)
+    # An implausible frame keeps its numbers (for review) under a non-ok status and its reason.
+    why = check_message(int(out.check[i])) if status == Status.IMPLAUSIBLE else ""
     return FrameResult(
         image=name,
         status=status,
@@ -336,4 +343,5 @@ def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str =
         center_y_px=cy,
         radius_px=r,
         overlay=overlay,
+        message=why,
     )

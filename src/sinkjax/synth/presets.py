@@ -11,10 +11,12 @@ from dataclasses import replace
 import numpy as np
 
 from ..geometry import travel_sign
+from .hard import HARD_PRESETS, HOLLOW_AHEAD, harden, with_hollow_ahead
 from .scene import Scene, mirrored, surface_y_px
 from .truth import boundary_points, n_rim_crossings, true_geometry
 
-PRESETS: tuple[str, ...] = ("clean", "full", "shading", "dust", "cast", "lowlight")
+# The hard presets (synth/hard.py) come last; the others render as they always have.
+PRESETS: tuple[str, ...] = ("clean", "full", "shading", "dust", "cast", "lowlight", *HARD_PRESETS)
 TERRAINS: tuple[str, ...] = ("flat", "bulldozed", "raised", "hollow", "rough")
 
 # Hue ranges (degrees) of the wheel paints; red straddles 0/360 on purpose (hue wrap-around).
@@ -51,6 +53,8 @@ def camera_setup(rng: np.random.Generator, width: int, height: int, preset: str)
     """One camera set-up: wheel placement and paint, soil and wall colours, lamp, sensor."""
     if preset not in PRESETS:
         raise ValueError(f"preset must be one of {PRESETS}, got {preset!r}")
+    if preset in HARD_PRESETS:
+        return harden(rng, camera_setup(rng, width, height, "full"), preset)
     if width < 64 or height < 64:
         raise ValueError(f"image must be at least 64x64 px, got {width}x{height}")
     u = rng.uniform
@@ -296,9 +300,23 @@ def random_scene(
 ) -> Scene:
     """One random frame: its own camera set-up, terrain kind, sinkage (~3 % no contact), phase."""
     base = camera_setup(rng, width, height, preset)
-    kind = TERRAINS[int(rng.integers(len(TERRAINS)))]
-    scene = with_terrain(rng, base, kind, contact=rng.random() >= 0.03)
+    kinds = _terrain_kinds(preset)
+    kind = kinds[int(rng.integers(len(kinds)))]
+    scene = _frame(rng, base, kind, contact=rng.random() >= 0.03)
     return mirrored(scene) if travel_sign(travel) < 0 else scene
+
+
+def _terrain_kinds(preset: str) -> tuple[str, ...]:
+    return (*TERRAINS, HOLLOW_AHEAD) if preset in HARD_PRESETS else TERRAINS
+
+
+def _frame(rng: np.random.Generator, base: Scene, kind: str, contact: bool) -> Scene:
+    """:func:`with_terrain`, plus the hard presets' ``hollow_ahead`` (a plain hollow where the
+    image leaves no room for one, or without contact)."""
+    if kind != HOLLOW_AHEAD:
+        return with_terrain(rng, base, kind, contact)
+    scene = with_hollow_ahead(rng, base) if contact else None
+    return scene if scene is not None else with_terrain(rng, base, "hollow", contact)
 
 
 def recording_scenes(
@@ -312,13 +330,15 @@ def recording_scenes(
 ) -> list[Scene]:
     """Frames of ONE camera set-up (same wheel, centre, radius, colours, lamp, sensor).
 
-    Terrain kinds cycle flat, bulldozed, raised, hollow, rough; sinkage, terrain details and the
-    wheel phase vary per frame; about 3 % of frames have no contact.
+    Terrain kinds cycle flat, bulldozed, raised, hollow, rough (and ``hollow_ahead`` for the
+    hard presets); sinkage, terrain details and the wheel phase vary per frame; about 3 % of
+    frames have no contact.
     """
     s = travel_sign(travel)
     base = camera_setup(rng, width, height, preset)
+    kinds = _terrain_kinds(preset)
     scenes = []
     for i in range(n_frames):
-        scene = with_terrain(rng, base, TERRAINS[i % len(TERRAINS)], contact=rng.random() >= 0.03)
+        scene = _frame(rng, base, kinds[i % len(kinds)], contact=rng.random() >= 0.03)
         scenes.append(mirrored(scene) if s < 0 else scene)
     return scenes

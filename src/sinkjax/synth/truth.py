@@ -111,8 +111,9 @@ def true_geometry(scene: Scene) -> Truth:
     ia, ib = (-1, 0) if s > 0 else (0, -1)  # entry end A has the largest u
     a = (float(u[ia]), float(v[ia]))
     be = (float(u[ib]), float(v[ib]))
-    t1 = math.pi / 2 - math.atan(a[1] / a[0]) if a[0] != 0 else 0.0
-    t2 = math.pi / 2 + math.atan(be[1] / be[0]) if be[0] != 0 else 0.0
+    # docs/conventions.md §1's atan2 form: continuous, negative past the bottom of the rim.
+    t1 = math.atan2(a[0], a[1])
+    t2 = math.atan2(-be[0], be[1])
     return Truth(
         sinkage_mm=z0 * scene.wheel_radius_mm / r,
         theta1_deg=math.degrees(t1),

@@ -1,0 +1,115 @@
+"""Checks on a finished calibration: did it converge, do the labelled frames agree, and how well
+does it do on a frame it did not choose with (leave-one-out)?
+
+All three are computed from what the optimiser already evaluated (every grid point and every
+Adam step keeps each frame's loss and values), so they cost no extra pass through the estimator:
+
+- **convergence**: the last descent either stopped because the loss had not improved for
+  ``patience`` steps, or it ran out of steps; then it converged only if its best loss improved
+  by less than :data:`CONVERGED_REL` over the last :data:`TAIL_STEPS` steps;
+- **disagreeing frames**: at the calibrated point, a frame whose loss per labelled value is far
+  above the others' (over :data:`DISAGREE_FACTOR` times their median and more than
+  :data:`DISAGREE_MIN` above it) is named: its labels and the rest cannot all be right with one
+  set of thresholds (a mislabelled frame, or one with different lighting);
+- **leave-one-out**: for each labelled frame, the point (among all evaluated) with the lowest
+  loss on the OTHER frames, and this frame's error there. The Adam points were pulled by every
+  frame's gradient, so for them this is a little optimistic; the grid points are honest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..status import Status
+from .labels import LabelledFrames
+
+CONVERGED_REL = 0.01
+TAIL_STEPS = 5
+DISAGREE_FACTOR = 5.0
+DISAGREE_MIN = 2.0  # loss per value: pseudo-Huber of ~2.8 mm or degrees
+
+
+@dataclasses.dataclass(frozen=True)
+class Checks:
+    """Convergence, disagreeing frames ``(name, loss per value, median of the others)`` and the
+    leave-one-out errors: per frame ``(name, |z0 error| mm, relative, |theta1|, |theta2| deg,
+    status ok)``, with NaN for cells not labelled."""
+
+    converged: bool
+    convergence: str
+    disagreeing: tuple[tuple[str, float, float], ...]
+    loo: tuple[tuple[str, float, float, float, float, bool], ...]
+
+    @property
+    def loo_median_rel(self) -> float:
+        rel = [r[2] for r in self.loo if math.isfinite(r[2])]
+        return float(np.median(rel)) if rel else math.nan
+
+    @property
+    def loo_failed(self) -> int:
+        return sum(not r[5] for r in self.loo)
+
+    def lines(self, grid_best_loss: float = math.nan) -> list[str]:
+        out = [self.convergence]
+        if math.isfinite(grid_best_loss):
+            out.append(f"best grid point's loss {grid_best_loss:.4g} (the result is never above)")
+        for name, loss, others in self.disagreeing:
+            out.append(
+                f"frame {name} disagrees with the others: loss {loss:.3g} per value vs a median "
+                f"of {others:.3g}; check its labels (or its lighting is unlike the others')"
+            )
+        out.append(
+            f"leave-one-out (each frame measured at the thresholds the others choose): median "
+            f"sinkage error {100 * self.loo_median_rel:.1f} %, {self.loo_failed} of "
+            f"{len(self.loo)} frames not ok"
+        )
+        return out
+
+
+def run_checks(
+    frame_losses: list[np.ndarray],
+    frame_values: list[np.ndarray],
+    frame_status: list[np.ndarray],
+    i_best: int,
+    frames: LabelledFrames,
+    last_losses: list[float],
+    stopped_early: bool,
+) -> Checks:
+    """The checks, from every evaluated point's per-frame losses (N,), values (N, 3) (mm, deg,
+    deg) and status codes (N,); ``i_best`` is the calibrated point's index."""
+    targets = np.asarray(frames.targets, float)
+    cells = np.maximum(np.isfinite(targets).sum(1), 1)
+    losses = np.stack(frame_losses)  # (P, N)
+    if stopped_early:
+        converged, note = True, "converged: no better loss for the last steps"
+    else:
+        best = np.minimum.accumulate(np.asarray(last_losses, float))
+        tail = best[-1 - min(TAIL_STEPS, len(best) - 1)]
+        gain = (tail - best[-1]) / max(abs(tail), 1e-12)
+        converged = bool(gain < CONVERGED_REL)
+        note = (
+            f"converged: the loss fell {100 * gain:.1f} % over the last {TAIL_STEPS} steps"
+            if converged
+            else f"NOT converged: the loss still fell {100 * gain:.1f} % over the last "
+            f"{TAIL_STEPS} steps; run again with more --steps"
+        )
+    per_value = losses[i_best] / cells
+    disagreeing = []
+    for i, name in enumerate(frames.names):
+        others = float(np.median(np.delete(per_value, i))) if len(per_value) > 1 else math.nan
+        if per_value[i] > max(DISAGREE_FACTOR * others, others + DISAGREE_MIN):
+            disagreeing.append((name, float(per_value[i]), others))
+    loo = []
+    total = losses.sum(1)
+    for i, name in enumerate(frames.names):
+        others = (total - losses[:, i]) / max(int(cells.sum() - cells[i]), 1)
+        j = int(np.argmin(others))
+        v, t = np.asarray(frame_values[j][i], float), targets[i]
+        ok = int(frame_status[j][i]) == Status.OK.code
+        err = np.abs(np.where(ok, v, 0.0) - t)
+        rel = err[0] / t[0] if np.isfinite(t[0]) and t[0] > 0 else math.nan
+        loo.append((name, float(err[0]), float(rel), float(err[1]), float(err[2]), ok))
+    return Checks(converged, note, tuple(disagreeing), tuple(loo))

@@ -1,0 +1,214 @@
+"""Plausibility stage: does the fitted model explain the picture? (issue 12, item 5)
+
+A fit always returns numbers; on footage the segmentation did not understand (a colour cast that
+makes the wall wheel-coloured, dust that makes the lower wheel soil-coloured, a shadow that eats
+half of the face) they can be far off while the fit's own covariance stays small. This stage
+weighs the model against its own inputs, with no threshold taken from the renderer:
+
+- **mask vs rim circle**: on a ring just inside the fitted rim, the part above the fitted soil
+  line is wheel by the model's own account, the part below it soil. The fraction of that ring
+  where the mask says otherwise is the disagreement. Lugs, holes, hub and highlights never reach
+  this ring on a wheel the mask understood, so a disagreement over more than a tenth of the ring
+  (36 degrees of rim) means the mask and the model describe different pictures.
+- **residuals vs the outline's own noise**: the rim points' residual variance against the
+  variance of the boundary points around the two short end tangents (the same mask's edge noise,
+  measured where the model is a straight line over a few pixels). Their ratio, an F statistic,
+  inflates sigma by its square root whenever it exceeds one (a Birge ratio: the fit explains its
+  evidence less well than the noise allows). It is reported with its 99.9 % point (log-normal
+  approximation, effective degrees of freedom reduced by the outline's correlation length) but
+  does not set the status: lugs and JPEG make rim and boundary noise differ on good frames too.
+- **a plausible soil curve**: the boundary must lie below O (the soil cannot cover the hub: the
+  confidence rectangle is above it) and reach the rim at both ends: its extreme points may stop
+  short of the rim by the end clearance plus a few pixels, not by a tenth of the radius, or A and
+  B are extrapolations the data never saw. Its span in x must also be the chord that z0 implies
+  on the equivalent line (the boundary is the line's stretch inside the rim), to within half.
+- **the soil goes on beyond the rim**: the soil surface does not end at the wheel. Just outside
+  the rim, past the lugs, below the equivalent line's extension, the image must look more like
+  the soil just inside the rim below the line than like what lies above the extension. When
+  at both ends it looks like what is above (the background), the "boundary" is an edge on the
+  wheel itself (soil-coloured dust on its lower part, a shadow line).
+
+Frames failing any test get status ``implausible`` (their message names the test) instead of a
+confident number. Everything is pure JAX, jit- and vmap-able.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from .model import Evidence, end_point, residuals
+
+N_RING_SAMPLES = 256
+# 99.9 % one-sided normal quantile: the tests' false-alarm rate on a frame the model explains.
+_Z_999 = 3.09
+# Correlation length of neighbouring outline points, in points: the uncertainty model's sigma
+# scale is its square root (soft.uncertainty.UncertaintyModel.scale_sinkage = 1.6).
+CORRELATION_POINTS = 1.6**2
+
+
+class Plausibility(eqx.Module):
+    """The evidence and the verdict for one frame (all scalars).
+
+    ``ring_disagreement`` (fraction of the ring inside the rim where mask and model disagree),
+    ``rim_f`` (rim residual variance over the boundary's local edge noise variance) and
+    ``rim_f_limit`` (its 99.9 % point), ``above_centre`` (fraction of boundary weight above O),
+    ``end_gap_px`` (the larger distance from a boundary end to the rim), ``chord_ratio``
+    (boundary x-span over the chord z0 implies); ``sigma_scale`` multiplies sigma; ``code`` is
+    0 when plausible, else 1 + the index of the first failed test in :data:`TESTS`.
+    """
+
+    ring_disagreement: Float[Array, ""]
+    rim_f: Float[Array, ""]
+    rim_f_limit: Float[Array, ""]
+    above_centre: Float[Array, ""]
+    end_gap_px: Float[Array, ""]
+    chord_ratio: Float[Array, ""]
+    sigma_scale: Float[Array, ""]
+    code: Array
+
+    @property
+    def plausible(self) -> Bool[Array, ""]:
+        return self.code == 0
+
+
+TESTS: tuple[str, ...] = (
+    "the wheel mask disagrees with the fitted rim circle over more than a tenth of the rim",
+    "the wheel-soil boundary reaches above the wheel centre",
+    "the wheel-soil boundary stops short of the rim (A or B would be extrapolated)",
+    "the wheel-soil boundary does not span the chord its sinkage implies",
+    "the soil surface does not continue beyond the rim at the boundary's ends",
+)
+MAX_RING_DISAGREEMENT = 0.1
+MAX_ABOVE_CENTRE = 0.05
+END_GAP_FRACTION = 0.1
+CHORD_RATIO_RANGE = (0.5, 1.5)
+
+
+def _bilinear(a: Float[Array, "H W"], x: Array, y: Array) -> Array:
+    return jax.scipy.ndimage.map_coordinates(a, [y, x], order=1, mode="nearest")
+
+
+def _ring_disagreement(
+    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, contact: Array
+) -> Array:
+    height, width = mask.shape
+    dt = mask.dtype
+    r = p[2]
+    rho = r - jnp.maximum(2.0, 0.04 * r)
+    phi = jnp.linspace(0.0, 2 * jnp.pi, N_RING_SAMPLES, endpoint=False, dtype=dt)
+    u, v = rho * jnp.cos(phi), rho * jnp.sin(phi)
+    x, y = p[0] + sign * u, p[1] + v
+    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    m = _bilinear(mask, x, y)
+    # Wheel above the equivalent line (y down); without contact the whole ring is wheel.
+    wheel_side = ~contact | (v < p[3] * u + p[4])
+    wrong = jnp.where(wheel_side, 1.0 - m, m)
+    n_seen = jnp.sum(seen.astype(dt))
+    return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
+
+
+def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
+    # Mean colour of a 5 x 5 px neighbourhood (sampled every 2 px): texture averages out.
+    o = jnp.asarray([-2.0, 0.0, 2.0], image.dtype)
+    xs, ys = (
+        jnp.broadcast_to(x + o[:, None], (3, 3)).ravel(),
+        jnp.broadcast_to(y + o[None, :], (3, 3)).ravel(),
+    )
+    return jnp.stack([jnp.mean(_bilinear(image[..., c], xs, ys)) for c in range(3)])
+
+
+def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " 9"], sign: Array) -> Array:
+    """True when, at both ends, the image below the line's extension outside the rim looks more
+    like the background above it than like the soil inside the rim (see the module docstring)."""
+    height, width = image.shape[:2]
+    r, k = p[2], p[3]
+    norm = jnp.sqrt(1.0 + k * k)
+    n = jnp.stack([-k, 1.0]) / norm  # down, across the line
+    lost = []
+    for side, alpha, c in ((1.0, p[5], p[6]), (-1.0, p[7], p[8])):
+        e = end_point(alpha, c, r, side)
+        t = side * jnp.stack([1.0, k]) / norm  # along the line, away from the wheel
+        pts = (e - 0.1 * r * t + 4.0 * n, e + 0.15 * r * t + 4.0 * n, e + 0.15 * r * t - 6.0 * n)
+        xy = [(p[0] + sign * q[0], p[1] + q[1]) for q in pts]
+        inside = jnp.all(
+            jnp.stack([(x >= 2) & (x <= width - 3) & (y >= 2) & (y <= height - 3) for x, y in xy])
+        )
+        c_in, c_out, c_up = (_patch_rgb(image, x, y) for x, y in xy)
+        # Clearly more like the background: twice as close, and apart by more than 0.05 in RGB.
+        d_in, d_up = jnp.sum((c_out - c_in) ** 2), jnp.sum((c_out - c_up) ** 2)
+        lost.append(inside & (d_in > 4.0 * d_up + 0.05**2))
+    return lost[0] & lost[1]
+
+
+def _variance(res: Array, w: Array) -> tuple[Array, Array]:
+    # Residual variance of a group (res carries sqrt(w)) and its effective degrees of freedom.
+    sw = jnp.sum(w)
+    dof = jnp.maximum(sw - 3.0, 1.0)
+    return jnp.sum(res * res) / dof, jnp.maximum(dof / CORRELATION_POINTS, 1.0)
+
+
+def plausibility(
+    image: Float[Array, "H W 3"],
+    mask: Float[Array, "H W"],
+    p: Float[Array, " 9"],
+    ev: Evidence,
+    contact: Array,
+) -> Plausibility:
+    """The plausibility tests for the fitted ``p`` of one frame (see the module docstring)."""
+    dt = p.dtype
+    n = ev.x_px.shape[0]
+    res = residuals(p, ev)
+    var_rim, dof_rim = _variance(jnp.where(ev.w_rim > 0, res[:n], 0.0), ev.w_rim)
+    var_end, dof_end = _variance(res[n : 2 * n], ev.w_a + ev.w_b)
+    floor = jnp.asarray(0.05**2, dt)  # as soft.uncertainty: no edge is better than 0.05 px
+    rim_f = jnp.maximum(var_rim, floor) / jnp.maximum(var_end, floor)
+    rim_f_limit = jnp.exp(_Z_999 * jnp.sqrt(2.0 / dof_rim + 2.0 / dof_end))
+    has_ends = jnp.sum(ev.w_a + ev.w_b) >= 6.0
+
+    u = ev.sign * (ev.x_px - p[0])
+    v = ev.y_px - p[1]
+    w = ev.w_line
+    sw = jnp.maximum(jnp.sum(w), 1e-9)
+    above = jnp.sum(jnp.where(v < 0, w, 0.0)) / sw
+    present = w > 0.5 * jnp.max(w)
+    d = jnp.sqrt(u * u + v * v + 1e-12)
+    i_a = jnp.argmax(jnp.where(present, u, -jnp.inf))
+    i_b = jnp.argmin(jnp.where(present, u, jnp.inf))
+    gap = jnp.maximum(p[2] - d[i_a], p[2] - d[i_b])
+    dist = jnp.abs(p[4]) / jnp.sqrt(p[3] ** 2 + 1.0)
+    chord = 2.0 * jnp.sqrt(jnp.maximum(p[2] ** 2 - dist**2, 1.0)) / jnp.sqrt(p[3] ** 2 + 1.0)
+    chord_ratio = (u[i_a] - u[i_b]) / chord
+
+    ring = _ring_disagreement(mask, p, ev.sign, contact)
+    clearance = ev.settings.end_clearance_px.astype(dt)
+    fails = jnp.stack(
+        [
+            ring > MAX_RING_DISAGREEMENT,
+            contact & (above > MAX_ABOVE_CENTRE),
+            contact & (gap > clearance + jnp.maximum(3.0, END_GAP_FRACTION * p[2])),
+            contact & ((chord_ratio < CHORD_RATIO_RANGE[0]) | (chord_ratio > CHORD_RATIO_RANGE[1])),
+            contact & _soil_beyond(image, p, ev.sign),
+        ]
+    )
+    code = jnp.where(jnp.any(fails), 1 + jnp.argmax(fails), 0).astype(jnp.int32)
+    sigma_scale = jnp.sqrt(jnp.where(has_ends, jnp.maximum(rim_f, 1.0), 1.0))
+    return Plausibility(
+        ring_disagreement=ring,
+        rim_f=rim_f,
+        rim_f_limit=rim_f_limit,
+        above_centre=above,
+        end_gap_px=gap,
+        chord_ratio=chord_ratio,
+        sigma_scale=sigma_scale,
+        code=code,
+    )
+
+
+def message(code: int) -> str:
+    """Words for a :class:`Plausibility` ``code`` (empty for 0)."""
+    if code <= 0:
+        return ""
+    return TESTS[code - 1] + "; the numbers are not trustworthy (check the segmentation: calibrate)"
