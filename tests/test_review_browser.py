@@ -27,6 +27,7 @@ if not CHROMIUM.exists():
 from test_review import true_geometry_px  # noqa: E402
 
 import sinkjax  # noqa: E402
+from sinkjax.app.demo import DEMO_PRESET, DEMO_SEED  # noqa: E402
 from sinkjax.review.command import Server, bind  # noqa: E402
 from sinkjax.review.server import create_app  # noqa: E402
 from sinkjax.review.session import ReviewSession  # noqa: E402
@@ -74,7 +75,10 @@ def test_review_page_measure_look_and_label_a_frame(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(tmp_path)  # frames are named as given: rec/frame_0000.png
-    folder = sinkjax.write_recording("rec", n_frames=6, seed=1, preset="clean", progress=False)
+    # The demo's recording (its seed and preset; its first 6 frames): the README's screenshot.
+    folder = sinkjax.write_recording(
+        "rec", n_frames=6, seed=DEMO_SEED, preset=DEMO_PRESET, progress=False
+    )
     truth = list(csv.DictReader((folder / "truth.csv").open()))
     flat = next(i for i, row in enumerate(truth) if row["terrain"] == "flat")
     session = ReviewSession([folder], labels=tmp_path / "labels" / "LABELS.csv")
