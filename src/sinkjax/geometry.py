@@ -14,6 +14,11 @@ from jaxtyping import Array, ArrayLike, Float
 _TINY = 1e-12
 
 
+# Pixel coordinates (any shape, the same for x and y) and a scalar, e.g. the rim centre.
+Points = Float[ArrayLike, "*n"]
+Scalar = Float[ArrayLike, ""]
+
+
 def travel_sign(travel: str) -> float:
     """+1 for ``travel="right"`` (entry on the right), -1 for ``"left"``. Raises ValueError."""
     if travel == "right":
@@ -34,11 +39,7 @@ def rim_radius_range_px(height: int, width: int) -> tuple[float, float]:
 
 
 def to_wheel_frame(
-    x_px: Float[ArrayLike, "*n"],
-    y_px: Float[ArrayLike, "*n"],
-    centre_x_px: Float[ArrayLike, ""],
-    centre_y_px: Float[ArrayLike, ""],
-    travel: str = "right",
+    x_px: Points, y_px: Points, centre_x_px: Scalar, centre_y_px: Scalar, travel: str = "right"
 ) -> tuple[Float[Array, "*n"], Float[Array, "*n"]]:
     """Image pixels -> wheel frame (O-centred, y down, entry side at +x)."""
     s = travel_sign(travel)
@@ -46,11 +47,7 @@ def to_wheel_frame(
 
 
 def from_wheel_frame(
-    u_px: Float[ArrayLike, "*n"],
-    v_px: Float[ArrayLike, "*n"],
-    centre_x_px: Float[ArrayLike, ""],
-    centre_y_px: Float[ArrayLike, ""],
-    travel: str = "right",
+    u_px: Points, v_px: Points, centre_x_px: Scalar, centre_y_px: Scalar, travel: str = "right"
 ) -> tuple[Float[Array, "*n"], Float[Array, "*n"]]:
     """Inverse of :func:`to_wheel_frame`."""
     s = travel_sign(travel)

@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .scene import Scene, surface_y_px
+from .scene import Scene, hsv_rgb as _hsv, hue_gap_deg as _hue_gap, surface_y_px
 from .truth import boundary_points, n_rim_crossings, true_geometry
 
 HARD_PRESETS: tuple[str, ...] = (
@@ -42,24 +42,12 @@ HOLLOW_AHEAD = "hollow_ahead"
 _MIN_HUE_GAP_DEG = 25.0
 
 
-def _hsv(h_deg: float, s: float, v: float) -> tuple[float, float, float]:
-    r, g, b = colorsys.hsv_to_rgb(
-        (h_deg % 360.0) / 360.0, min(max(s, 0.0), 1.0), min(max(v, 0.0), 1.0)
-    )
-    return (r, g, b)
-
-
-def _hue_gap_deg(a: float, b: float) -> float:
-    d = abs(a - b) % 360.0
-    return min(d, 360.0 - d)
-
-
 def _paint(rng: np.random.Generator, soil_hue_deg: float) -> dict[str, object]:
     """Wheel, rim, lug and hub colours of any hue away from the soil's; 1 in 4 grey-ish."""
     u = rng.uniform
     hue = u(0, 360)
     for _ in range(100):
-        if _hue_gap_deg(hue, soil_hue_deg) >= _MIN_HUE_GAP_DEG:
+        if _hue_gap(hue, soil_hue_deg) >= _MIN_HUE_GAP_DEG:
             break
         hue = u(0, 360)
     sat = u(0.3, 0.45) if u(0, 1) < 0.25 else u(0.55, 0.95)

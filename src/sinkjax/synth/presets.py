@@ -4,7 +4,6 @@ terrains of each kind with a sampled sinkage; :func:`random_scene` and :func:`re
 
 from __future__ import annotations
 
-import colorsys
 import math
 from dataclasses import replace
 
@@ -12,7 +11,7 @@ import numpy as np
 
 from ..geometry import travel_sign
 from .hard import HARD_PRESETS, HOLLOW_AHEAD, harden, with_hollow_ahead
-from .scene import Scene, mirrored, surface_y_px
+from .scene import Scene, hsv_rgb as _hsv, hue_gap_deg as _hue_gap, mirrored, surface_y_px
 from .truth import boundary_points, n_rim_crossings, true_geometry
 
 # The hard presets (synth/hard.py) come last; the others render as they always have.
@@ -35,18 +34,6 @@ _SOILS = {
     "reddish-grey": ((2, 14), (0.18, 0.30), (0.45, 0.60)),
 }
 _MIN_HUE_GAP_DEG = 12.0
-
-
-def _hsv(h_deg: float, s: float, v: float) -> tuple[float, float, float]:
-    r, g, b = colorsys.hsv_to_rgb(
-        (h_deg % 360.0) / 360.0, min(max(s, 0.0), 1.0), min(max(v, 0.0), 1.0)
-    )
-    return (r, g, b)
-
-
-def _hue_gap(a: float, b: float) -> float:
-    d = abs(a - b) % 360.0
-    return min(d, 360.0 - d)
 
 
 def camera_setup(rng: np.random.Generator, width: int, height: int, preset: str) -> Scene:

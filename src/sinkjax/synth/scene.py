@@ -8,6 +8,7 @@ sensor. :func:`mirrored` is the left-right mirror image with the same truth.
 
 from __future__ import annotations
 
+import colorsys
 import math
 from dataclasses import dataclass, replace
 
@@ -149,3 +150,17 @@ def mirrored(scene: Scene) -> Scene:
         specular=tuple((-dx, dy, sg, am) for dx, dy, sg, am in scene.specular),
         shadow_offset_px=(-sx, sy),
     )
+
+
+def hsv_rgb(h_deg: float, s: float, v: float) -> tuple[float, float, float]:
+    """A colour from hue (degrees, wrapped), saturation and value (clipped to [0, 1]) as RGB."""
+    r, g, b = colorsys.hsv_to_rgb(
+        (h_deg % 360.0) / 360.0, min(max(s, 0.0), 1.0), min(max(v, 0.0), 1.0)
+    )
+    return (r, g, b)
+
+
+def hue_gap_deg(a: float, b: float) -> float:
+    """The circular distance between two hues, in degrees (0-180)."""
+    d = abs(a - b) % 360.0
+    return min(d, 360.0 - d)
