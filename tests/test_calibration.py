@@ -165,7 +165,7 @@ def test_rig_problems_stop_before_work(
         "wheel_radius_mm = 100.0\nconfidence_rect = [30, 2, 4, 4]\n", encoding="utf-8"
     )
     assert main(["calibrate", str(labels), "--out", str(small_set / "o.toml")]) == 2
-    assert "lies off the 32x24 images" in capsys.readouterr().err
+    assert "extends beyond the 32x24 image" in capsys.readouterr().err
     (small_set / "rig.toml").write_text(
         "wheel_radius_mm = 100.0\nconfidence_rect = [2, 2, 4, 4]\n", encoding="utf-8"
     )

@@ -120,7 +120,7 @@ def test_traced_rect_equals_sliced_rect_with_one_trace() -> None:
 
 def test_confidence_rect_off_image_raises() -> None:
     z = jnp.zeros((10, 10))
-    with pytest.raises(ValueError, match="off the 10x10 image"):
+    with pytest.raises(ValueError, match="extends beyond the 10x10 image"):
         confidence_means(z, z, (5, 5, 10, 2))
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float, UInt8
 
-from ..rig import Rig, RigError
+from ..rig import Rig, RigError, rect_problem
 
 LABEL_COLUMNS = ("image", "sinkage_mm", "theta1_deg", "theta2_deg")
 QUANTITIES = LABEL_COLUMNS[1:]
@@ -105,13 +105,10 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
             )
         images.append(image)
     if rig is not None:
-        x, y, w, h = rig.confidence_rect
         height, width = images[0].shape[:2]
-        if x + w > width or y + h > height:
-            raise LabelError(
-                f"the rig's confidence_rect [{x}, {y}, {w}, {h}] lies off the {width}x{height} "
-                f"images of {p}; fix confidence_rect in the rig file"
-            )
+        problem = rect_problem(rig.confidence_rect, height, width)
+        if problem is not None:
+            raise LabelError(f"{p}: the images of these labels: {problem}")
     return LabelledFrames(np.stack(images), t, tuple(names))
 
 

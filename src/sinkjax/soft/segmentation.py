@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ..rig import HUE_SCALE_DEG, SegmentationParams
+from ..rig import HUE_SCALE_DEG, SegmentationParams, rect_problem
 from .colour import circular_mean_deg, rgb_to_hsi, wrap_deg
 
 # The confidence rectangle (x, y, w, h) in px: static ints, or a traced array (see below).
@@ -30,12 +30,10 @@ def confidence_means(
     """
     height, width = h_deg.shape[-2:]
     if isinstance(rect, tuple | list):
+        problem = rect_problem(tuple(rect), height, width)
+        if problem is not None:
+            raise ValueError(problem)
         x, y, w, h = rect
-        if x < 0 or y < 0 or x + w > width or y + h > height:
-            raise ValueError(
-                f"confidence rectangle {list(rect)} is off the {width}x{height} image; "
-                "fix confidence_rect in the rig file or --confidence-rect"
-            )
         return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
     x0, y0, w0, h0 = (rect[i] for i in range(4))
     cols = jnp.arange(width, dtype=rect.dtype)
