@@ -204,6 +204,15 @@ def iter_frames(
             yield _image_frame(source)
 
 
+def _video_property(path: Path, prop: int) -> float:
+    """One property of a video container (0.0 when OpenCV cannot open it)."""
+    capture = cv2.VideoCapture(str(path))
+    try:
+        return float(capture.get(prop)) if capture.isOpened() else 0.0
+    finally:
+        capture.release()
+
+
 def count_frames(sources: Sequence[Source], *, select: FrameSelection = ALL_FRAMES) -> int:
     """The number of frames to expect (video containers' frame counts; may be approximate)."""
     n_images = 0
@@ -212,11 +221,7 @@ def count_frames(sources: Sequence[Source], *, select: FrameSelection = ALL_FRAM
         if source.kind != "video":
             n_images += 1
             continue
-        capture = cv2.VideoCapture(str(source.path))
-        try:
-            n = capture.get(cv2.CAP_PROP_FRAME_COUNT) if capture.isOpened() else 0.0
-        finally:
-            capture.release()
+        n = _video_property(source.path, cv2.CAP_PROP_FRAME_COUNT)
         total += select.count(int(n)) if math.isfinite(n) and n > 0 else 1
     return total + select.count(n_images)
 
@@ -227,11 +232,7 @@ def frame_rate(sources: Sequence[Source], *, select: FrameSelection = ALL_FRAMES
     for source in sources:
         if source.kind != "video":
             continue
-        capture = cv2.VideoCapture(str(source.path))
-        try:
-            fps = capture.get(cv2.CAP_PROP_FPS) if capture.isOpened() else 0.0
-        finally:
-            capture.release()
+        fps = _video_property(source.path, cv2.CAP_PROP_FPS)
         if math.isfinite(fps) and fps > 0:
             return max(fps / select.stride, 1.0)
     return DEFAULT_FPS
