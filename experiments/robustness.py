@@ -27,7 +27,7 @@ import numpy as np
 
 from sinkjax import FrameResult, Status, metrics as sm, synth as S
 from sinkjax.classic.estimator import estimate_classic, recording_radius_px
-from sinkjax.soft.estimator import estimate_batch
+from sinkjax.soft.batch import estimate_batch
 from sinkjax.synth.hard import HARD_PRESETS
 from sinkjax.synth.recording import frame_seed
 

@@ -707,12 +707,12 @@ def test_classic_rim_search_follows_the_hint(small_wheel_in_large_frame):
 def test_soft_rim_search_follows_the_hint_with_one_compile(small_wheel_in_large_frame):
     import dataclasses
 
-    from sinkjax.soft import estimator as soft
+    from sinkjax.soft import batch as soft
 
     image, rig, truth, _, _ = small_wheel_in_large_frame
     (plain,) = soft.estimate_batch([image], rig, ["x"])
     assert plain.status == "no_wheel" and "rim radii searched: 86-540 px" in plain.message
-    before = soft._measure_one._cache_size()
+    before = soft._prepare_one._cache_size()
     radii = []
     for hint in (70.0, 78.0):
         (hinted,) = soft.estimate_batch(
@@ -722,5 +722,5 @@ def test_soft_rim_search_follows_the_hint_with_one_compile(small_wheel_in_large_
         # the documented limit (conventions §2): the plausibility check flags it, never ``ok``.
         assert hinted.status in ("ok", "no_contact", "implausible"), hinted.message
         radii.append(hinted.radius_px)
-    assert soft._measure_one._cache_size() == before + 1  # the hint is traced, not static
+    assert soft._prepare_one._cache_size() == before + 1  # the hint is traced, not static
     assert all(abs(r - truth.radius_px) < 1.0 for r in radii)

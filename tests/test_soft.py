@@ -9,7 +9,8 @@ import pytest
 
 from sinkjax.geometry import equivalent_line
 from sinkjax.rig import Rig, SegmentationParams
-from sinkjax.soft.estimator import estimate_batch, measure
+from sinkjax.soft.batch import estimate_batch
+from sinkjax.soft.estimator import measure
 from sinkjax.soft.fit import fit
 from sinkjax.soft.model import Evidence, measurements
 from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
@@ -76,12 +77,13 @@ def test_jit_equals_eager_and_vmap_equals_loop(rendered) -> None:
 def test_one_compile_serves_every_rig_of_a_size(rendered) -> None:
     """A second rig (other rectangle, radius, travel) of the same image size compiles nothing,
     and the traced rig gives the static-argument path's numbers."""
-    import sinkjax.soft.estimator as E
+    import sinkjax.soft.batch as E
 
     images, _, rig = rendered("clean", n=2)
-    fn = E._measure_batch if E._use_vmap() else E._measure_one
+    fn = E._finish_batch if E._use_vmap() else E._finish_one
     before = fn._cache_size()
-    rows = estimate_batch(images, rig, ["a", "b"])
+    # Each frame's own rim: comparable with measure() on the frame alone.
+    rows = estimate_batch(images, rig, ["a", "b"], rim="frame")
     compiled = fn._cache_size()
     x, y, w, h = rig.confidence_rect
     other = Rig(

@@ -51,12 +51,13 @@ from .rig import (
     save_rig as save_rig,
 )
 from .soft.colour import circular_mean_deg as circular_mean_deg, rgb_to_hsi as rgb_to_hsi
+from .soft.batch import SoftRecording as SoftRecording, estimate_batch as estimate_batch
 from .soft.estimator import (
     SoftEstimate as SoftEstimate,
-    estimate_batch as estimate_batch,
     measure as measure,
     measure_from_mask as measure_from_mask,
 )
+from .soft.rim import RecordingRim as RecordingRim
 from .soft.segmentation import (
     confidence_means as confidence_means,
     soft_mask as soft_mask,

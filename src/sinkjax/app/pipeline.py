@@ -21,7 +21,7 @@ from ..result import FrameResult, failed
 from ..rig import Rig, rect_problem
 from ..status import Status
 from .frames import ALL_FRAMES, Frame, FrameSelection, check_image_size, iter_frames
-from .sources import Inputs, Recording, assign_rigs, expand_paths, with_rig
+from .sources import Inputs, Recording, Source, assign_rigs, expand_paths, with_rig
 
 log = logging.getLogger("sinkjax")
 
@@ -51,29 +51,48 @@ def _classic_batch() -> BatchMethod:
     return run
 
 
-def _soft_batch() -> BatchMethod:
+FirstFrames = Callable[[int, int], list[np.ndarray]]
+
+
+def _soft_batch(rim: str = "recording", first_frames: FirstFrames | None = None) -> BatchMethod:
     try:
-        module = importlib.import_module("sinkjax.soft.estimator")
-        estimate_batch: BatchMethod = module.estimate_batch
+        module = importlib.import_module("sinkjax.soft.batch")
+        recording: BatchMethod = module.SoftRecording(rim=rim, first_frames=first_frames)
     except (ImportError, AttributeError) as e:
         raise MethodUnavailable(
-            "the soft method (sinkjax.soft.estimator.estimate_batch) is not available in this "
+            "the soft method (sinkjax.soft.batch.SoftRecording) is not available in this "
             f"install ({e}); use --method classic, or reinstall sinkjax"
         ) from e
-    return estimate_batch
+    return recording
 
 
-_LOADERS: dict[str, Callable[[], BatchMethod]] = {"soft": _soft_batch, "classic": _classic_batch}
+def _classic_loader(rim: str = "recording", first_frames: FirstFrames | None = None) -> BatchMethod:
+    return _classic_batch()
 
 
-def load_method(method: str) -> BatchMethod:
-    """The batch function for ``method`` ("soft" or "classic").
+_LOADERS: dict[str, Callable[[str, FirstFrames | None], BatchMethod]] = {
+    "soft": _soft_batch,
+    "classic": _classic_loader,
+}
+RIM_MODES = ("recording", "frame")
+
+
+def load_method(
+    method: str, rim: str = "recording", first_frames: FirstFrames | None = None
+) -> BatchMethod:
+    """The batch function for ``method`` ("soft" or "classic") for ONE recording: call it again
+    for the next recording. The soft method keeps the recording's rim (``rim`` "recording",
+    found from ``first_frames(height, width)``, the recording's first readable frames of a size;
+    see :class:`sinkjax.soft.batch.SoftRecording`), or measures each frame with its own
+    ("frame").
 
     Raises ValueError for an unknown name and MethodUnavailable if it cannot be imported.
     """
     if method not in _LOADERS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    return _LOADERS[method]()
+    if rim not in RIM_MODES:
+        raise ValueError(f"unknown rim mode {rim!r}; choose one of {', '.join(RIM_MODES)}")
+    return _LOADERS[method](rim, first_frames)
 
 
 def _error_text(e: BaseException) -> str:
@@ -146,6 +165,8 @@ def iter_estimates(
     *,
     method: str | BatchMethod = "soft",
     batch_size: int = 8,
+    rim: str = "recording",
+    first_frames: FirstFrames | None = None,
 ) -> Iterator[tuple[Frame, FrameResult]]:
     """Each frame with its result, in input order, exactly one per frame.
 
@@ -153,14 +174,15 @@ def iter_estimates(
     at a time (``soft``; ``classic`` runs frame by frame). Frames that could not be read, that
     are smaller than ``MIN_IMAGE_SIDE_PX`` (``bad_image``), or whose confidence rectangle lies
     off the image (``bad_rect``), get their row without reaching the method. ``method`` may
-    also be a batch function ``(images, rig, names) -> results``. Raises ValueError /
+    also be a batch function ``(images, rig, names) -> results``. ``frames`` are one recording
+    (``rim`` and ``first_frames``: see :func:`load_method`). Raises ValueError /
     MethodUnavailable before reading any frame.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if callable(method):
         return _iter_estimates(frames, rig, method, batch_size, retry=True)
-    run = load_method(method)
+    run = load_method(method, rim, first_frames)
     if method == "soft":
         return _iter_estimates(frames, rig, _fixed_shape(run, batch_size), batch_size, retry=True)
     return _iter_estimates(frames, rig, run, 1, retry=False)
@@ -242,12 +264,14 @@ def estimate_stream(
     *,
     method: str | BatchMethod = "soft",
     batch_size: int = 8,
+    rim: str = "recording",
 ) -> Iterator[FrameResult]:
-    """Results for ``frames`` (:class:`Frame` or ``(name, RGB uint8 (H, W, 3))``), in order.
+    """Results for ``frames`` (:class:`Frame` or ``(name, RGB uint8 (H, W, 3))``) of one
+    recording, in order.
 
     Exactly one result per input frame; see :func:`iter_estimates` for batching and failures.
     """
-    pairs = iter_estimates(frames, rig, method=method, batch_size=batch_size)
+    pairs = iter_estimates(frames, rig, method=method, batch_size=batch_size, rim=rim)
     return (result for _, result in pairs)
 
 
@@ -258,12 +282,16 @@ def iter_recordings(
     batch_size: int = 8,
     select: FrameSelection = ALL_FRAMES,
     skip: Collection[str] = frozenset(),
+    rim: str = "recording",
 ) -> Iterator[tuple[Recording, Frame, FrameResult]]:
     """Every selected frame of every recording, with its result, in input order.
 
-    Each recording is measured with its own rig (see :func:`sinkjax.app.sources.assign_rigs`);
-    frames are read lazily and batches never span two recordings. Raises ValueError /
-    MethodUnavailable before reading any frame, and ValueError if a recording has no rig.
+    Each recording is measured with its own rig (see :func:`sinkjax.app.sources.assign_rigs`)
+    and, for the soft method, its own rim (``rim``, see :func:`load_method`) found from its
+    first selected frames whatever ``skip`` leaves out, so a resumed run gives the rows of an
+    uninterrupted one. Frames are read lazily and batches never span two recordings. Raises
+    ValueError / MethodUnavailable before reading any frame, and ValueError if a recording has
+    no rig.
     """
     for rec in inputs.recordings:
         if rec.rig is None:
@@ -272,9 +300,50 @@ def iter_recordings(
     for rec in inputs.recordings:
         assert rec.rig is not None
         frames = iter_frames(rec.sources, select=select, skip=skip, first_image_index=image_index)
+        first = first_frames_reader(rec.sources, rec.rig, select, image_index)
         image_index += sum(s.kind == "image" for s in rec.sources)
-        for frame, result in iter_estimates(frames, rec.rig, method=method, batch_size=batch_size):
+        pairs = iter_estimates(
+            frames, rec.rig, method=method, batch_size=batch_size, rim=rim, first_frames=first
+        )
+        for frame, result in pairs:
             yield rec, frame, result
+
+
+def first_frames_reader(
+    sources: Sequence[Source], rig: Rig, select: FrameSelection, first_image_index: int
+) -> FirstFrames:
+    """``first_frames(height, width)``: the first frames of that size of a recording that the
+    method would measure (readable, large enough, the rig's rectangle inside), at most the soft
+    method's ``RIM_FRAMES``, read from the recording's start once per size."""
+    found: dict[tuple[int, int], list[np.ndarray]] = {}
+
+    def first_frames(height: int, width: int) -> list[np.ndarray]:
+        from ..soft.batch import RIM_FRAMES
+
+        if (height, width) not in found:
+            images: list[np.ndarray] = []
+            frames = iter_frames(sources, select=select, first_image_index=first_image_index)
+            try:
+                for frame in frames:
+                    image = frame.image
+                    if (
+                        image is None
+                        or image.shape[:2] != (height, width)
+                        or check_image_size(image.shape) is not None
+                        or rect_problem(rig.confidence_rect, height, width) is not None
+                    ):
+                        continue
+                    images.append(image)
+                    if len(images) >= RIM_FRAMES:
+                        break
+            finally:
+                close = getattr(frames, "close", None)
+                if close is not None:
+                    close()
+            found[(height, width)] = images
+        return found[(height, width)]
+
+    return first_frames
 
 
 def estimate_paths(
@@ -285,18 +354,19 @@ def estimate_paths(
     batch_size: int = 8,
     rig_path: str | Path | None = None,
     select: FrameSelection = ALL_FRAMES,
+    rim: str = "recording",
 ) -> Iterator[FrameResult]:
     """Results for PATH arguments (images, directories, videos), one per frame, in order.
 
     ``rig`` given: every recording uses it. None: each recording its own ``rig.toml``, else
     ``rig_path`` (docs/conventions.md §2). ``select``: which frame indices (see
-    :class:`FrameSelection`). Raises InputError or RigError (bad arguments) before any frame
-    is measured.
+    :class:`FrameSelection`); ``rim``: see :func:`load_method`. Raises InputError or RigError
+    (bad arguments) before any frame is measured.
     """
     inputs = expand_paths(paths)
     if rig is not None:
         inputs = with_rig(inputs, rig)
     else:
         inputs = assign_rigs(inputs, rig_path=rig_path)
-    pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select)
+    pairs = iter_recordings(inputs, method=method, batch_size=batch_size, select=select, rim=rim)
     return (result for _, _, result in pairs)

@@ -40,9 +40,16 @@ def _orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
 
 
 def build_evidence(
-    outline: Outline, circle: Circle, sign: float | Float[Array, ""], settings: SoftSettings
+    outline: Outline,
+    circle: Circle,
+    sign: float | Float[Array, ""],
+    settings: SoftSettings,
+    rim_weight: float | Float[Array, ""] = 0.0,
 ) -> Evidence:
     """Group weights for every outline point, and the solve's starting point.
+
+    ``rim_weight`` (1/px^2) holds the fitted circle to ``circle`` (the recording's rim,
+    ``soft.rim``); 0 leaves it free (``circle`` is then only where the solve starts).
 
     The bands around the rim decide which points are rim evidence, which may be boundary (well
     inside the rim, facing down, soil below them) and which may hold the ends' tangents (clear
@@ -106,6 +113,8 @@ def build_evidence(
         sign=jnp.asarray(sign, dt),
         start=start,
         settings=s,
+        rim_px=start[:3],
+        rim_weight=jnp.asarray(rim_weight, dt),
     )
 
 

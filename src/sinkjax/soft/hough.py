@@ -134,9 +134,15 @@ def hough_rim(
     use_inner = jnp.max(h_inner) >= 0.35 * jnp.max(hist)
     r = jnp.where(use_inner, rb[jnp.argmax(h_inner)], r)
     (cx, cy, r), _ = jax.lax.scan(refine, (cx, cy, r), bands[5:])
+    return Circle(cx_px=cx, cy_px=cy, r_px=r, support=circle_support(outline, cx, cy, r))
+
+
+def circle_support(outline: Outline, cx: Array, cy: Array, r: Array) -> Float[Array, ""]:
+    """Fraction of the circle's circumference with outward-facing outline points on it."""
+    dt = outline.x_px.dtype
+    w = outline.weight * jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
     dx, dy = outline.x_px - cx, outline.y_px - cy
     d = jnp.sqrt(dx * dx + dy * dy + 1e-9)
     align = (dx * outline.nx + dy * outline.ny) / d
     on_rim = w * (jnp.abs(d - r) < 1.5).astype(dt) * (align > 0.8).astype(dt)
-    support = jnp.sum(on_rim) / (2 * jnp.pi * jnp.maximum(r, 1.0))
-    return Circle(cx_px=cx, cy_px=cy, r_px=r, support=support)
+    return jnp.sum(on_rim) / (2 * jnp.pi * jnp.maximum(r, 1.0))

@@ -41,6 +41,10 @@ class Evidence(eqx.Module):
     start: Float[Array, " 9"]
     # The loss scale and priors (``SoftSettings``); fixed during the solve, differentiable.
     settings: SoftSettings = eqx.field(default_factory=SoftSettings)
+    # The recording's rim (cx, cy, r px) and the prior's weight (1/px^2) holding the circle to
+    # it (soft.rim); weight 0: the frame's own rim, free.
+    rim_px: Float[Array, " 3"] = eqx.field(default_factory=lambda: jnp.zeros(3))
+    rim_weight: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 def _welsch(res: Array, scale: Array) -> Array:
@@ -85,8 +89,9 @@ def residuals(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, " N"]:
             * jnp.stack([p[6] - line_offset, p[8] - line_offset]),
         ]
     )
+    rim_prior = _sqrt_weight(ev.rim_weight.astype(p.dtype)) * (p[:3] - ev.rim_px.astype(p.dtype))
     # rim and line members are disjoint (outside / inside the rim), so are the two end windows.
-    return jnp.concatenate([rim + line, end_a + end_b, prior, end_prior])
+    return jnp.concatenate([rim + line, end_a + end_b, prior, end_prior, rim_prior])
 
 
 def end_point(

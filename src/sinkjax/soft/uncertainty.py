@@ -61,6 +61,7 @@ def covariance(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, "9 9"]:
             jnp.full((n,), s_end),
             jnp.ones((N_PARAMS,)),
             jnp.full((4,), s_end),
+            jnp.ones((3,)),  # the recording rim's prior is in px already
         ]
     )
     jw = jac / scale[:, None]

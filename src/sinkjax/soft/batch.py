@@ -1,0 +1,352 @@
+"""The soft method over the frames of a recording: compiled halves, the recording's rim, rows.
+
+:class:`SoftRecording` is what the pipeline runs for one recording. The first batch of frames of
+an image size is measured with each frame's own rim; their circles vote for the recording's rim
+(``soft.rim.combine_rims``), and the same prepared frames are then finished again with that rim
+held as a strong prior, as is every later frame: a stream is read once, and the output depends
+only on the frames, never on how a run was cut into tasks. ``estimate_batch`` is the same for a
+list of frames taken as one recording.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ..geometry import from_wheel_frame, travel_sign
+from ..result import FrameResult, Overlay, failed, no_contact
+from ..rig import Rig, SegmentationParams, rect_problem, rim_hint_range_px
+from ..status import Status
+from .checks import message as check_message
+from .estimator import Prepared, RigArrays, SoftEstimate, finish, prepare, rechoose, rig_arrays
+from .hough import radius_range_px
+from .rim import RIM_HIDDEN, RIM_MOVED, RecordingRim, combine_rims
+from .segmentation import wheel_mask
+from .settings import SoftSettings
+from .uncertainty import UncertaintyModel
+
+
+def _float(image_u8: Array) -> Array:
+    # The default float: float32, or float64 when jax_enable_x64 is on (one dtype throughout,
+    # which the solver requires).
+    return image_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
+
+
+def _prepare_u8(
+    image_u8: Array, seg: SegmentationParams, rig: RigArrays, rim: RecordingRim
+) -> Prepared:
+    image = _float(image_u8)
+    return prepare(image, wheel_mask(image, seg, rig.rect_px), rim, None, rig.rim_range_px)
+
+
+def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstimate:
+    return finish(
+        _float(image_u8),
+        prepared,
+        travel=rig.travel_sign,
+        wheel_radius_mm=rig.wheel_radius_mm,
+        uncertainty=rig.uncertainty,
+    )
+
+
+# No static arguments: these compile once per image size (and batch size), whatever the rig
+# and whatever the rim.
+_prepare_one = jax.jit(_prepare_u8)
+_rechoose_one = jax.jit(rechoose)
+_finish_one = jax.jit(_finish_u8)
+_prepare_batch = jax.jit(jax.vmap(_prepare_u8, in_axes=(0, None, None, None)))
+_rechoose_batch = jax.jit(jax.vmap(rechoose, in_axes=(0, None)))
+_finish_batch = jax.jit(jax.vmap(_finish_u8, in_axes=(0, 0, None)))
+
+# Accelerator batches are padded to one of these sizes (then to a multiple of the largest), so
+# that a run compiles a handful of shapes, not one per batch length.
+BATCH_SIZES = (1, 8, 32, 128)
+
+
+def padded_size(n: int) -> int:
+    """The batch size ``n`` frames are padded to: the first of :data:`BATCH_SIZES` that holds
+    them, else a multiple of the largest."""
+    for size in BATCH_SIZES:
+        if n <= size:
+            return size
+    top = BATCH_SIZES[-1]
+    return -(-n // top) * top
+
+
+def _use_vmap() -> bool:
+    # On a CPU, vmap runs the Levenberg-Marquardt loops of all frames in lockstep until the
+    # slowest converges, and XLA optimises a looped body (lax.map) worse than a plain one: frame
+    # by frame through one compiled function is fastest. Accelerators want the whole batch.
+    return jax.default_backend() != "cpu"
+
+
+def _stack(items: list) -> object:
+    # NumPy, not jnp.stack: eager JAX ops would each compile once per process.
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *items)
+
+
+# A recording's rim is found from its first this many readable frames of each image size.
+RIM_FRAMES = 8
+
+FirstFrames = Callable[[int, int], list[np.ndarray]]
+
+
+class SoftRecording:
+    """The soft method for one recording (frames from one fixed camera), batch by batch.
+
+    Call it like :func:`estimate_batch`; it keeps the recording's rim per image size between
+    calls. ``rim``: "recording" (default) finds the rim once per image size from the
+    recording's first :data:`RIM_FRAMES` readable frames of that size; "frame" measures every
+    frame with its own rim (a camera that moves relative to the wheel); a
+    :class:`RecordingRim` is used as given. ``first_frames(height, width)`` returns those first
+    frames (the pipeline reads them from the start of the recording, so a resumed run or a
+    chunk of a long video finds the same rim as the whole run); None: the first batch of each
+    size is taken to be them. ``rims`` holds the rim per image size (``use`` 0 where the first
+    frames gave no consensus: frames of that size are measured with their own rims).
+    """
+
+    def __init__(
+        self,
+        *,
+        rim: str | RecordingRim = "recording",
+        uncertainty: UncertaintyModel | None = None,
+        first_frames: FirstFrames | None = None,
+    ) -> None:
+        if not isinstance(rim, RecordingRim) and rim not in ("recording", "frame"):
+            raise ValueError(f"rim must be 'recording', 'frame' or a RecordingRim, got {rim!r}")
+        self.mode = rim
+        self.uncertainty = uncertainty
+        self.first_frames = first_frames
+        self.rims: dict[tuple[int, int], RecordingRim] = {}
+
+    def rim_for(self, height: int, width: int) -> RecordingRim | None:
+        """The rim frames of this size are measured with; None: not decided yet."""
+        if isinstance(self.mode, RecordingRim):
+            return self.mode
+        if self.mode == "frame":
+            return RecordingRim.per_frame()
+        return self.rims.get((height, width))
+
+    def __call__(
+        self,
+        images: list[np.ndarray],
+        rig: Rig,
+        names: list[str],
+        *,
+        pad_to: int | None = None,
+    ) -> list[FrameResult]:
+        if len(images) != len(names):
+            raise ValueError(f"got {len(images)} images but {len(names)} names")
+        if not images:
+            return []
+        shape = images[0].shape
+        if any(im.shape != shape for im in images):
+            raise ValueError("estimate_batch needs frames of one size; the pipeline groups them")
+        height, width = shape[:2]
+        problem = rect_problem(rig.confidence_rect, height, width)
+        if problem is not None:
+            return [failed(n, Status.BAD_RECT, problem) for n in names]
+        run = _Run(rig, self.uncertainty, pad_to)
+        out = self._estimates(images, run)
+        hint = rim_hint_range_px(rig)
+        lo, hi = hint or radius_range_px(height, width)
+        searched = f"{lo:.0f}-{hi:.0f} px, " + (
+            "from the rig's rim_radius_px"
+            if hint
+            else "fractions of the image size; set rim_radius_px in the rig if the rim's radius "
+            "is outside"
+        )
+        return [frame_result(out, i, names[i], rig, searched) for i in range(len(images))]
+
+    def _estimates(self, images: list[np.ndarray], run: _Run) -> SoftEstimate:
+        height, width = images[0].shape[:2]
+        rim = self.rim_for(height, width)
+        if rim is not None:
+            return run.finish(images, run.prepare(images, rim))
+        if self.first_frames is None:
+            first = images[:RIM_FRAMES]
+        else:
+            first = self.first_frames(height, width)[:RIM_FRAMES]
+        k = len(first)
+        same = [np.array_equal(a, b) for a, b in zip(first, images[:k], strict=False)]
+        if not (0 < k <= len(images) and all(same)):
+            # This batch does not start with the rim's frames (a resumed run, a chunk of a
+            # video): measure those first, then this batch with their rim.
+            if k:
+                own = run.finish(first, run.prepare(first, RecordingRim.per_frame()))
+                self.rims[(height, width)] = _vote(own, k)
+            else:
+                self.rims[(height, width)] = RecordingRim.per_frame()
+            return self._estimates(images, run)
+        prepared = run.prepare(images, RecordingRim.per_frame())
+        out = run.finish(images, prepared)
+        rim = self.rims[(height, width)] = _vote(out, k)
+        if float(rim.use) < 0.5:
+            return out
+        return run.finish(images, run.rechoose(prepared, rim))
+
+
+class _Run:
+    """One call's compiled-function plumbing: frame by frame on a CPU, padded batches else."""
+
+    def __init__(self, rig: Rig, uncertainty: UncertaintyModel | None, pad_to: int | None):
+        # Fixed dtypes (not weak ones) for the thresholds too: a rig loaded from a file and one
+        # built in Python must hit the same compiled function.
+        dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+        self.seg = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), rig.segmentation)
+        self.arrays = rig_arrays(rig, uncertainty)
+        self.vmap = _use_vmap()
+        self.pad_to = pad_to
+
+    def _frames(self, images: list[np.ndarray]) -> list[Array]:
+        if self.vmap:
+            n = len(images)
+            size = max(self.pad_to or padded_size(n), n)
+            return [jnp.asarray(np.stack(images + [images[0]] * (size - n)))]
+        return [jnp.asarray(im) for im in images]
+
+    def prepare(self, images: list[np.ndarray], rim: RecordingRim) -> list[Prepared]:
+        frames = self._frames(images)
+        fn = _prepare_batch if self.vmap else _prepare_one
+        return [fn(f, self.seg, self.arrays, rim) for f in frames]
+
+    def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
+        fn = _rechoose_batch if self.vmap else _rechoose_one
+        return [fn(p, rim) for p in prepared]
+
+    def finish(self, images: list[np.ndarray], prepared: list[Prepared]) -> SoftEstimate:
+        frames = self._frames(images)
+        fn = _finish_batch if self.vmap else _finish_one
+        each = [fn(f, p, self.arrays) for f, p in zip(frames, prepared, strict=True)]
+        if self.vmap:
+            return jax.tree_util.tree_map(np.asarray, each[0])
+        return _stack(each)  # type: ignore[return-value]
+
+
+def _vote(out: SoftEstimate, n: int) -> RecordingRim:
+    """The recording's rim from the first ``n`` frames' own fits (per-frame if no consensus)."""
+    found = combine_rims(out.params[:n, :3], _rim_evidence(out, n), min_support=_min_support())
+    return RecordingRim.per_frame() if found is None else found
+
+
+def _min_support() -> float:
+    return float(SoftSettings().min_rim_support)
+
+
+def _rim_evidence(out: SoftEstimate, n: int) -> np.ndarray:
+    """Each frame's rim support where its own fit converged on a rim it saw, else 0."""
+    status = np.asarray(out.status[:n])
+    usable = np.isin(
+        status, [Status.OK.code, Status.NO_CONTACT.code, Status.IMPLAUSIBLE.code]
+    ) & np.all(np.isfinite(np.asarray(out.params[:n, :3])), axis=1)
+    return np.where(usable, np.asarray(out.rim_support[:n]), 0.0)
+
+
+def estimate_batch(
+    images: list[np.ndarray],
+    rig: Rig,
+    names: list[str],
+    *,
+    pad_to: int | None = None,
+    uncertainty: UncertaintyModel | None = None,
+    rim: str | RecordingRim = "recording",
+) -> list[FrameResult]:
+    """Soft estimates for frames of one size (uint8 RGB (H, W, 3) each), one row per frame,
+    taken as one recording (see :class:`SoftRecording` for ``rim``).
+
+    ``pad_to`` pads the batch (repeating a frame) on an accelerator so that every call has the
+    same shape and the compiled functions are reused; by default to :func:`padded_size`. The
+    rig's numbers are traced (:class:`RigArrays`): a new rig of a size already seen compiles
+    nothing.
+    """
+    return SoftRecording(rim=rim, uncertainty=uncertainty)(images, rig, names, pad_to=pad_to)
+
+
+def _rim_message(out: SoftEstimate, i: int) -> str:
+    code = int(out.rim_code[i])
+    if code == RIM_HIDDEN:
+        return (
+            f"the rim is hardly seen in this frame ({100 * float(out.rim_support[i]):.0f}% of it): "
+            "measured with the recording's rim"
+        )
+    if code == RIM_MOVED:
+        cx, cy, r = (float(v) for v in out.own_rim_px[i])
+        return (
+            f"this frame's own rim (centre {cx:.1f}, {cy:.1f} px, radius {r:.1f} px) is not the "
+            "recording's: measured with its own rim (has the camera moved? --rim frame measures "
+            "every frame with its own)"
+        )
+    return ""
+
+
+def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str = "") -> FrameResult:
+    """Frame ``i`` of a batched :class:`SoftEstimate` as the common :class:`FrameResult`
+    (degrees, image px, the overlay geometry). ``searched``: the rim radii searched, for the
+    message of a frame without a rim."""
+    p = out.params[i].astype(float)
+    status = Status.from_code(int(out.status[i]))
+    cx, cy, r = float(p[0]), float(p[1]), float(p[2])
+    if status == Status.NO_WHEEL:
+        rim = f" (rim radii searched: {searched})" if searched else ""
+        return failed(name, Status.NO_WHEEL, Status.NO_WHEEL.message + rim)
+    if status == Status.FIT_FAILED or not np.all(np.isfinite(p)):
+        return FrameResult(
+            image=name,
+            status=Status.FIT_FAILED,
+            center_x_px=cx,
+            center_y_px=cy,
+            radius_px=r,
+            message=Status.FIT_FAILED.message,
+        )
+    sign = travel_sign(rig.travel)
+    a, b = out.ends_uv_px[i].astype(float)
+    ax, ay = (float(t) for t in from_wheel_frame(a[0], a[1], cx, cy, rig.travel))
+    bx, by = (float(t) for t in from_wheel_frame(b[0], b[1], cx, cy, rig.travel))
+    keep = out.boundary_weight[i] > 0.25
+    boundary = np.stack([out.boundary_x_px[i][keep], out.boundary_y_px[i][keep]], -1)
+    k, bb = float(p[3]), float(p[4])
+    line = None
+    if status == Status.OK:
+        u0, u1 = float(b[0]), float(a[0])
+        line = (
+            (cx + sign * u0, cy + k * u0 + bb),
+            (cx + sign * u1, cy + k * u1 + bb),
+        )
+    overlay = Overlay(
+        centre_px=(cx, cy),
+        radius_px=r,
+        boundary_px=boundary,
+        line_px=line,
+        a_px=(ax, ay) if status == Status.OK else None,
+        b_px=(bx, by) if status == Status.OK else None,
+    )
+    rim_note = _rim_message(out, i)
+    if status == Status.NO_CONTACT:
+        result = no_contact(name, (cx, cy), r, overlay)
+        return (
+            dataclasses.replace(result, message=f"{result.message}; {rim_note}")
+            if rim_note
+            else result
+        )
+    # An implausible frame keeps its numbers (for review) under a non-ok status and its reason.
+    why = check_message(int(out.check[i])) if status == Status.IMPLAUSIBLE else ""
+    return FrameResult(
+        image=name,
+        status=status,
+        sinkage_mm=float(out.sinkage_mm[i]),
+        sinkage_std_mm=float(out.sinkage_std_mm[i]),
+        theta1_deg=float(np.degrees(out.theta1_rad[i])),
+        theta1_std_deg=float(np.degrees(out.theta1_std_rad[i])),
+        theta2_deg=float(np.degrees(out.theta2_rad[i])),
+        theta2_std_deg=float(np.degrees(out.theta2_std_rad[i])),
+        center_x_px=cx,
+        center_y_px=cy,
+        radius_px=r,
+        overlay=overlay,
+        message="; ".join(m for m in (why, rim_note) if m),
+    )
