@@ -83,10 +83,7 @@ def test_a_frame_whose_rim_moved_is_measured_with_its_own_and_says_so(rendered) 
     shift = 24  # px to the left: the camera was bumped
     moved = np.roll(images[4], -shift, axis=1)
     moved[:, -shift:] = moved[:, -shift - 1 : -shift]
-    x, y, w, h = rig.confidence_rect
-    rows = estimate_batch(
-        [*images[:4], moved], rig, [f"f{i}" for i in range(5)], rim="recording"
-    )
+    rows = estimate_batch([*images[:4], moved], rig, [f"f{i}" for i in range(5)], rim="recording")
     row = rows[4]
     assert "is not the recording's: measured with its own rim" in row.message
     assert abs(row.center_x_px - (truths[4].center_x_px - shift)) < 1.0
