@@ -55,6 +55,14 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
         "status, median and range of z0, θ1, θ2, median σ)",
     )
     p.add_argument(
+        "--rim",
+        choices=("recording", "frame"),
+        default="recording",
+        help="recording: find the rim circle once per recording from its first frames and "
+        "measure every frame with it (a camera fixed to the wheel; default); frame: each frame "
+        "its own rim (a camera that moves relative to the wheel). Soft method only",
+    )
+    p.add_argument(
         "--batch-size",
         type=int,
         default=8,
@@ -120,6 +128,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
             args.out,
             method=args.method,
             batch_size=args.batch_size,
+            rim=args.rim,
             overlay_dir=args.overlay,
             overlay_video=args.overlay_video,
             select=select,

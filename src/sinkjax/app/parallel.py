@@ -80,6 +80,12 @@ class Task:
     jax_options: dict[str, Any] = field(default_factory=dict)
     cache_dir: str | None = None
     size_hint: tuple[int, int] | None = None  # (width, height) of its first frame, if known
+    rim: str = "recording"
+    # The whole recording (absolute paths), its selection and its first image index: a chunk
+    # finds the recording's rim from the recording's first frames, as the serial run does.
+    recording_sources: tuple[Source, ...] = ()
+    recording_select: FrameSelection = ALL_FRAMES
+    recording_first_image_index: int = 0
 
 
 @dataclass
@@ -126,6 +132,7 @@ def plan_tasks(
     skip: Collection[str] = frozenset(),
     chunk_frames: int = CHUNK_FRAMES,
     overlay_dir: str | Path | None = None,
+    rim: str = "recording",
 ) -> list[Task]:
     """The run cut into tasks in input order: each video its own task or chunks of it, the
     image files of a recording in chunks of ``chunk_frames`` (rounded up to the batch size)."""
@@ -137,6 +144,7 @@ def plan_tasks(
     tasks: list[Task] = []
     sizes: dict[int, tuple[int, int] | None] = {}
     image_index = 0
+    first_index: dict[int, int] = {}
 
     def add(rec_i: int, rec: Recording, sources: list[Source], sel: FrameSelection) -> None:
         if rec_i not in sizes:
@@ -144,16 +152,18 @@ def plan_tasks(
         names = {s.name for s in sources}
         mine = frozenset(n for n in skip if n in names or n.rpartition("#")[0] in names)
         absolute = tuple(dataclasses.replace(s, path=s.path.absolute()) for s in sources)
+        whole = tuple(dataclasses.replace(s, path=s.path.absolute()) for s in rec.sources)
         assert rec.rig is not None
         tasks.append(
             Task(rec_i, absolute, rec.rig, sel, image_index, mine, method, batch_size,
                  None if overlay_dir is None else str(Path(overlay_dir).absolute()),
-                 options, cache, sizes[rec_i])
+                 options, cache, sizes[rec_i], rim, whole, select, first_index[rec_i])
         )  # fmt: skip
 
     for rec_i, rec in enumerate(inputs.recordings):
         if rec.rig is None:
             raise ValueError(f"recording {rec.name!r} has no rig; use assign_rigs first")
+        first_index[rec_i] = image_index
         images: list[Source] = []
         for source in [*rec.sources, None]:
             if source is not None and source.kind == "image":
@@ -209,7 +219,7 @@ def run_task(task: Task) -> TaskResult:
     from .compile_cache import CompileClock, enable_compile_cache
     from .frames import iter_frames
     from .overlay import OverlayWriter
-    from .pipeline import iter_estimates
+    from .pipeline import first_frames_reader, iter_estimates
 
     for source in task.sources:
         if not source.path.exists():
@@ -236,7 +246,20 @@ def run_task(task: Task) -> TaskResult:
             first_image_index=task.first_image_index,
         )
         with CompileClock() as clock:
-            pairs = iter_estimates(frames, task.rig, method=task.method, batch_size=task.batch_size)
+            first = first_frames_reader(
+                task.recording_sources or task.sources,
+                task.rig,
+                task.recording_select,
+                task.recording_first_image_index,
+            )
+            pairs = iter_estimates(
+                frames,
+                task.rig,
+                method=task.method,
+                batch_size=task.batch_size,
+                rim=task.rim,
+                first_frames=first,
+            )
             for frame, result in pairs:
                 if overlays is not None and frame.image is not None:
                     stem = frame.stem or Path(frame.name).stem

@@ -34,23 +34,6 @@ class MethodUnavailable(RuntimeError):
     """The requested estimator cannot be imported in this install; the message names a fix."""
 
 
-def _classic_batch() -> BatchMethod:
-    try:
-        module = importlib.import_module("sinkjax.classic.estimator")
-        estimate_classic = module.estimate_classic
-    except (ImportError, AttributeError) as e:
-        raise MethodUnavailable(
-            f"the classic method (sinkjax.classic.estimator.estimate_classic) is not available: {e}"
-        ) from e
-
-    def run(images: list[np.ndarray], rig: Rig, names: list[str]) -> list[FrameResult]:
-        return [
-            estimate_classic(image, rig, name) for image, name in zip(images, names, strict=True)
-        ]
-
-    return run
-
-
 FirstFrames = Callable[[int, int], list[np.ndarray]]
 
 
@@ -66,13 +49,20 @@ def _soft_batch(rim: str = "recording", first_frames: FirstFrames | None = None)
     return recording
 
 
-def _classic_loader(rim: str = "recording", first_frames: FirstFrames | None = None) -> BatchMethod:
-    return _classic_batch()
+def _classic_batch(rim: str = "recording", first_frames: FirstFrames | None = None) -> BatchMethod:
+    try:
+        module = importlib.import_module("sinkjax.classic.recording")
+        recording: BatchMethod = module.ClassicRecording(first_frames)
+    except (ImportError, AttributeError) as e:
+        raise MethodUnavailable(
+            f"the classic method (sinkjax.classic.recording.ClassicRecording) is not available: {e}"
+        ) from e
+    return recording
 
 
 _LOADERS: dict[str, Callable[[str, FirstFrames | None], BatchMethod]] = {
     "soft": _soft_batch,
-    "classic": _classic_loader,
+    "classic": _classic_batch,
 }
 RIM_MODES = ("recording", "frame")
 

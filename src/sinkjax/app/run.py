@@ -93,6 +93,7 @@ def estimate_to_csv(
     rig_path: str | Path | None = None,
     method: str | BatchMethod = "soft",
     batch_size: int = 8,
+    rim: str = "recording",
     overlay_dir: str | Path | None = None,
     overlay_video: str | Path | None = None,
     select: FrameSelection = ALL_FRAMES,
@@ -107,6 +108,8 @@ def estimate_to_csv(
     ``paths``: PATH arguments, or recordings with their rigs
     (:func:`sinkjax.app.sources.open_recordings`). For PATHs, ``rig`` (if given) serves every
     recording; else each uses its own ``rig.toml``, then ``rig_path`` (docs/conventions.md §2).
+    ``rim``: "recording" (the soft method finds each recording's rim once, from its first
+    frames) or "frame" (each frame its own; a moving camera).
     ``overlay_dir``: also write one overlay PNG per readable frame there; ``overlay_video``: an
     annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
     :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
@@ -138,7 +141,7 @@ def estimate_to_csv(
             "--workers/--scheduler"
         )
     if parallel is not None and isinstance(method, str):
-        load_method(method)  # an unknown or missing method fails here, not on every worker
+        load_method(method, rim)  # an unknown or missing method fails here, not on every worker
     done: set[str] = set()  # filled below; the frames are read lazily, after that
     # Only now, with every argument checked, may an output be touched; prepare_resume checks
     # the whole file before it changes a byte of it.
@@ -181,13 +184,15 @@ def estimate_to_csv(
             rows: Iterator[tuple[Recording, FrameResult, bool, Frame | None]]
             if runner is None:
                 pairs = iter_recordings(
-                    inputs, method=method, batch_size=batch_size, select=select, skip=done
+                    inputs, method=method, batch_size=batch_size, select=select, skip=done, rim=rim
                 )
                 rows = (
                     (rec, result, frame.image is not None, frame) for rec, frame, result in pairs
                 )
             else:
-                rows = _parallel_rows(runner, inputs, method, batch_size, select, done, overlay_dir)
+                rows = _parallel_rows(
+                    runner, inputs, method, batch_size, select, done, overlay_dir, rim
+                )
             for rec, result, was_read, frame in rows:
                 writer.write(result)
                 summary.counts[result.status] += 1
@@ -218,11 +223,13 @@ def _parallel_rows(
     select: FrameSelection,
     done: set[str],
     overlay_dir: str | Path | None,
+    rim: str,
 ) -> Iterator[tuple[Recording, FrameResult, bool, Frame | None]]:
     tasks = plan_tasks(
         inputs,
         method=method,
         batch_size=batch_size,
+        rim=rim,
         select=select,
         skip=done,
         chunk_frames=runner.options.chunk_frames,
