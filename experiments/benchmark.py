@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 import sinkjax as sj
 from sinkjax import FrameResult, Rig, metrics as sm, synth as S
+from sinkjax.classic.recording import ClassicRecording
 
 SIZES = ((640, 480), (800, 600), (480, 360), (1280, 720))
 RESULTS = Path(__file__).parent / "results"
@@ -77,16 +78,17 @@ def run_soft(
         recs.setdefault(f.recording, []).append(f)
     bar = tqdm(total=len(frames), desc="soft", disable=not progress)
     for group in recs.values():
+        recording = sj.SoftRecording()  # one rim per recording, as `sinkjax estimate` does
         for i in range(0, len(group), batch):
             chunk = group[i : i + batch]
             key = (chunk[0].image.shape, chunk[0].rig.confidence_rect, chunk[0].rig.travel)
             if key not in seen:  # compile outside the timing
-                sj.estimate_batch(
+                sj.SoftRecording()(
                     [f.image for f in chunk], chunk[0].rig, [f.name for f in chunk], pad_to=batch
                 )
                 seen.add(key)
             t0 = time.perf_counter()
-            out += sj.estimate_batch(
+            out += recording(
                 [f.image for f in chunk], chunk[0].rig, [f.name for f in chunk], pad_to=batch
             )
             timed += time.perf_counter() - t0
@@ -105,8 +107,16 @@ def run_classic(
         sj.estimate_classic(frames[0].image, frames[0].rig, frames[0].name, refine=refine)
     t0 = time.perf_counter()
     desc = "classic+refine" if refine else "classic"
+    if refine:
+        for f in tqdm(frames, desc=desc, disable=not progress):
+            out.append(sj.estimate_classic(f.image, f.rig, f.name, refine=True))
+        return out, (time.perf_counter() - t0) / max(len(frames), 1)
+    # As `sinkjax estimate` runs it: per recording, each frame's rim checked against the
+    # recording's radius (its first frames').
+    recordings: dict[int, ClassicRecording] = {}
     for f in tqdm(frames, desc=desc, disable=not progress):
-        out.append(sj.estimate_classic(f.image, f.rig, f.name, refine=refine))
+        recording = recordings.setdefault(f.recording, ClassicRecording())
+        out += recording([f.image], f.rig, [f.name])
     return out, (time.perf_counter() - t0) / max(len(frames), 1)
 
 

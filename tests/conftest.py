@@ -223,8 +223,8 @@ def use_method(monkeypatch: pytest.MonkeyPatch) -> Callable[[Callable[..., Any]]
     from sinkjax.app import pipeline
 
     def use(fn: Callable[..., Any]) -> None:
-        monkeypatch.setitem(pipeline._LOADERS, "classic", lambda: fn)
-        monkeypatch.setitem(pipeline._LOADERS, "soft", lambda: fn)
+        monkeypatch.setitem(pipeline._LOADERS, "classic", lambda rim, first: fn)
+        monkeypatch.setitem(pipeline._LOADERS, "soft", lambda rim, first: fn)
 
     return use
 

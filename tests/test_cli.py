@@ -205,7 +205,7 @@ def test_method_exception_becomes_error_row(tmp_path, monkeypatch, capsys):
     def explode(images, rig, names):
         raise ZeroDivisionError("no pixels")
 
-    monkeypatch.setitem(_pipeline._LOADERS, "classic", lambda: explode)
+    monkeypatch.setitem(_pipeline._LOADERS, "classic", lambda *_: explode)
     monkeypatch.chdir(tmp_path)
     png(tmp_path / "a.png")
     assert main(["estimate", "a.png", *RIG_FLAGS, "--method", "classic"]) == 0
@@ -214,7 +214,7 @@ def test_method_exception_becomes_error_row(tmp_path, monkeypatch, capsys):
 
 
 def test_soft_unavailable_is_clear(tmp_path, monkeypatch, capsys):
-    monkeypatch.setitem(sys.modules, "sinkjax.soft.estimator", None)  # import fails
+    monkeypatch.setitem(sys.modules, "sinkjax.soft.batch", None)  # import fails
     png(tmp_path / "a.png")
     code = main(["estimate", str(tmp_path / "a.png"), *RIG_FLAGS, "--out", str(tmp_path / "r")])
     assert code == 2

@@ -321,7 +321,7 @@ def test_bad_files_each_get_a_row_and_a_reason(method, good_png):
                 args = ["estimate", *paths, *RIG_FLAGS, "--out", out]
                 args += ["--batch-size", str(batch_size)]
                 args += ["--method", "soft" if method == "fake-soft" else method]
-                with mock.patch.dict(_pipeline._LOADERS, {"soft": lambda: fake_soft}):
+                with mock.patch.dict(_pipeline._LOADERS, {"soft": lambda *_: fake_soft}):
                     code, err = run_cli(args)
                 if code != 0:
                     assert code == 2, err
@@ -426,7 +426,7 @@ def test_bad_rigs_fail_once_before_any_work():
                 if via == "--rig"
                 else [str(rec)]
             )
-            with mock.patch.dict(_pipeline._LOADERS, {"soft": lambda: spy}):
+            with mock.patch.dict(_pipeline._LOADERS, {"soft": lambda *_: spy}):
                 code, err = run_cli(["estimate", *target, "--out", str(out)])
             assert code == 2, (text, err)
             errors = [line for line in err.splitlines() if "error:" in line]
@@ -480,7 +480,7 @@ def test_bad_arguments_fail_once_before_any_work(tmp_path, monkeypatch, extra, n
         rig, extra = [], []
     calls: list[str] = []
     spy = lambda images, rig, names: calls.extend(names) or fake_soft(images, rig, names)
-    with mock.patch.dict(_pipeline._LOADERS, {"soft": lambda: spy}):
+    with mock.patch.dict(_pipeline._LOADERS, {"soft": lambda *_: spy}):
         code, err = run_cli(["estimate", *paths, *rig, *extra])
     assert code == 2 and needle in err, err
     errors = [line for line in err.splitlines() if "error:" in line]
@@ -496,7 +496,7 @@ def _soft_cases() -> list[tuple[str, bytes, set[str]]]:
     """~20 awkward inputs; every readable, big-enough frame is 48x64 so one compile serves all."""
     h, w = 48, 64
     rgb = scene(h, w, "wheel", 3)
-    measured = {"ok", "no_contact", "no_wheel", "fit_failed"}
+    measured = {"ok", "no_contact", "no_wheel", "fit_failed", "implausible"}
     cases: list[tuple[str, bytes, set[str]]] = [
         ("zero.png", b"", {"unreadable"}),
         ("text.jpg", b"hello, not a jpeg", {"unreadable"}),

@@ -312,7 +312,7 @@ def fake(calls: list[str]):
 def run(args: list[str], method=None) -> tuple[int, str, list[str]]:
     calls: list[str] = []
     err = io.StringIO()
-    loader = (lambda: method) if method is not None else (lambda: fake(calls))
+    loader = (lambda *_: method) if method is not None else (lambda *_: fake(calls))
     with (
         mock.patch.dict(_pipeline._LOADERS, {"soft": loader}),
         mock.patch("sys.stderr", err),

@@ -222,7 +222,7 @@ _KILLABLE = textwrap.dedent(
         time.sleep(0.1)
         return fake_rows(images, rig, names)
 
-    _pipeline._LOADERS["classic"] = lambda: slow
+    _pipeline._LOADERS["classic"] = lambda *_: slow
     from sinkjax.app.cli import main
     sys.exit(main(sys.argv[1:]))
     """

@@ -53,11 +53,10 @@ SOFT_BATCH = 8  # every soft call has this batch size: one compiled function per
 
 def _soft(frames: Sequence[Frame], rig: sj.Rig) -> list[sj.FrameResult]:
     rows: list[Any] = []
+    recording = sj.SoftRecording()  # the frames are one recording: one rim
     for i in range(0, len(frames), SOFT_BATCH):
         chunk = frames[i : i + SOFT_BATCH]
-        rows += sj.estimate_batch(
-            [f.image for f in chunk], rig, [f.name for f in chunk], pad_to=SOFT_BATCH
-        )
+        rows += recording([f.image for f in chunk], rig, [f.name for f in chunk], pad_to=SOFT_BATCH)
     return rows
 
 
