@@ -11,6 +11,7 @@ list of frames taken as one recording.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable
 
 import jax
@@ -29,6 +30,8 @@ from .rim import RIM_HIDDEN, RIM_MOVED, RecordingRim, combine_rims
 from .segmentation import wheel_mask
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel
+
+log = logging.getLogger("sinkjax")
 
 
 def _float(image_u8: Array) -> Array:
@@ -152,7 +155,20 @@ class SoftRecording:
         if problem is not None:
             return [failed(n, Status.BAD_RECT, problem) for n in names]
         run = _Run(rig, self.uncertainty, pad_to)
+        decided = (height, width) in self.rims
         out = self._estimates(images, run)
+        rim = self.rims.get((height, width))
+        if not decided and rim is not None and float(rim.use) < 0.5:
+            log.warning(
+                "%s: the recording's first frames show no common rim circle (a camera not fixed "
+                "to the wheel, or unrelated pictures): each frame of %dx%d is measured with its "
+                "own rim",
+                names[0],
+                width,
+                height,
+            )
+        elif not decided and rim is not None:
+            log.info("%s: the recording's %s", names[0], rim.describe())
         hint = rim_hint_range_px(rig)
         lo, hi = hint or radius_range_px(height, width)
         searched = f"{lo:.0f}-{hi:.0f} px, " + (
