@@ -63,6 +63,25 @@ def test_paper_reea_example() -> None:
     assert sm.relative_error_pct([30.0], [27.0], ["ok"])[0] == pytest.approx(10.0)
 
 
+def test_reea_and_reda_by_hand() -> None:
+    """REEA / REDA = 100 |θ_est - θ_true| / |θ_true| over measured frames, worked by hand."""
+    status = ["ok", "ok", "no_contact", "fit_failed", "ok", "ok"]
+    true_t1 = [30.0, 20.0, 12.0, 25.0, 0.0, 16.0]
+    est_t1 = [27.0, 21.0, 9.0, 25.0, 1.0, 16.4]
+    # 3/30, 1/20, no_contact reads 0: 12/12, failed, no true angle, 0.4/16.
+    expect_t1 = [10.0, 5.0, 100.0, math.nan, math.nan, 2.5]
+    np.testing.assert_allclose(sm.reea_pct(true_t1, est_t1, status), expect_t1)
+    true_t2 = [18.0, 10.0, 8.0, 20.0, 0.0, -4.0]  # the last: B ahead of O (hollow terrain)
+    est_t2 = [18.9, 9.2, 5.0, 1.0, 0.5, -3.0]
+    # 0.9/18, 0.8/10, 8/8, failed, no true angle, |-3 - (-4)| / |-4|.
+    expect_t2 = [5.0, 8.0, 100.0, math.nan, math.nan, 25.0]
+    np.testing.assert_allclose(sm.reda_pct(true_t2, est_t2, status), expect_t2)
+    # Beside the absolute errors of the same frames (deg): REEA = 100 |error| / |truth|.
+    np.testing.assert_allclose(
+        sm.abs_error(true_t1, est_t1, status), [3.0, 1.0, 12.0, math.nan, 1.0, 0.4], atol=1e-12
+    )
+
+
 def test_statistics_leave_out_failed_frames() -> None:
     absolute = sm.abs_error(TRUTH, EST, STATUS)
     assert sm.count(absolute) == 3
