@@ -64,6 +64,7 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
     rel = {m: records.rel_errors_pct(recs, m, "sinkage") for m in METHODS}
     err = {m: records.abs_errors(recs, m, "sinkage") for m in METHODS}
     rel_angle = {(m, q): records.rel_errors_pct(recs, m, q) for m in METHODS for q in ANGLES}
+    abs_angle = {(m, q): records.abs_errors(recs, m, q) for m in METHODS for q in ANGLES}
 
     def counts(sel: np.ndarray) -> str:
         rr = [r for r, s in zip(recs, sel, strict=True) if s]
@@ -79,6 +80,7 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
         row += [report.fmt(sm.median(err[m][sel])) for m in METHODS]
         for q in ANGLES:
             row += [report.fmt(sm.median(rel_angle[(m, q)][sel])) for m in METHODS]
+            row += [report.fmt(sm.median(abs_angle[(m, q)][sel])) for m in METHODS]
         row.append(counts(sel))
         rows.append(row)
     groups = {
@@ -97,12 +99,14 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
             summary[f"{m}_{tag}_no_contact"] = records.n_no_contact(rr, m)
             for q in ANGLES:
                 summary[f"{m}_{tag}_{q}_rel_pct"] = sm.median(rel_angle[(m, q)][sel])
+                summary[f"{m}_{tag}_{q}_abs_deg"] = sm.median(abs_angle[(m, q)][sel])
     _figure(setup, recs)
     headers = ["true z0 (mm)", "frames"]
     headers += [f"rel. z0 err {m} (%)" for m in METHODS]
     headers += [f"abs. z0 err {m} (mm)" for m in METHODS]
-    headers += [f"rel. θ1 err {m} (%)" for m in METHODS]
-    headers += [f"rel. θ2 err {m} (%)" for m in METHODS]
+    for short, q in (("REEA", "θ1"), ("REDA", "θ2")):
+        headers += [f"rel. {q} err ({short}) {m} (%)" for m in METHODS]
+        headers += [f"abs. {q} err {m} (°)" for m in METHODS]
     headers.append("no contact/failed: classic soft")
     text = "\n\n".join(
         [

@@ -145,6 +145,11 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
                 ]
             )
     err = {m: sm.median(records.abs_errors(recs, m, "sinkage")) for m in ("classic", "soft")}
+    angles = {  # (median abs θ1, abs θ2 in deg, REEA, REDA in %) over all frames
+        m: [sm.median(records.abs_errors(recs, m, q)) for q in ("theta1", "theta2")]
+        + [sm.median(records.rel_errors_pct(recs, m, q)) for q in ("theta1", "theta2")]
+        for m in ("classic", "soft")
+    }
     _figure(setup, means)
     text = "\n\n".join(
         [
@@ -182,7 +187,14 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
             f"{checks['truth']}/{n_checked}, classic {checks['classic']}/{n_checked}, soft "
             f"{checks['soft']}/{n_checked}. Median |error| against the true sinkage over all "
             f"{len(recs)} frames: classic {report.fmt(err['classic'])} mm, soft "
-            f"{report.fmt(err['soft'])} mm.",
+            f"{report.fmt(err['soft'])} mm. Entry and exit angles over all frames, median "
+            "absolute error θ1 / θ2 and median relative error (the paper's REEA / REDA): "
+            + "; ".join(
+                f"{m} {report.fmt(a[0])}° / {report.fmt(a[1])}°, "
+                f"{report.fmt(a[2], 1)} % / {report.fmt(a[3], 1)} %"
+                for m, a in angles.items()
+            )
+            + ".",
             f"![terrain adaptability]({NAME}.png)",
         ]
     )
@@ -195,6 +207,12 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
         "ordering_soft": checks["soft"],
         "median_abs_err_classic_mm": err["classic"],
         "median_abs_err_soft_mm": err["soft"],
+    } | {
+        f"{m}_{key}": a[i]
+        for m, a in angles.items()
+        for i, key in enumerate(
+            ("theta1_abs_deg", "theta2_abs_deg", "theta1_rel_pct", "theta2_rel_pct")
+        )
     }
 
 
