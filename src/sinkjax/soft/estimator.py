@@ -7,6 +7,9 @@ NumPy-facing wrapper the pipeline and CLI use; it turns each frame into a result
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -212,6 +215,24 @@ def _measure_u8(image_u8: Array, seg: SegmentationParams, rig: RigArrays) -> Sof
 _measure_one = jax.jit(_measure_u8)
 _measure_batch = jax.jit(jax.vmap(_measure_u8, in_axes=(0, None, None)))
 
+# (name, jitted function, example arguments) -> the callable to run on arguments of that shape.
+CompiledProvider = Callable[[str, Any, tuple[Any, ...]], Callable[..., SoftEstimate]]
+_provider: CompiledProvider | None = None
+
+
+def set_compiled_provider(provider: CompiledProvider | None) -> None:
+    """Let the application layer supply the compiled measuring functions (e.g. executables
+    loaded from disk, :mod:`sinkjax.app.executables`); None: the jitted functions themselves."""
+    global _provider
+    _provider = provider
+
+
+def compiled_measure(batched: bool, *args: Any) -> Callable[..., SoftEstimate]:
+    """The measuring function (one frame, or a batch) for arguments shaped like ``args``."""
+    name, fn = ("measure_batch", _measure_batch) if batched else ("measure_one", _measure_one)
+    return fn if _provider is None else _provider(name, fn, args)
+
+
 # Accelerator batches are padded to one of these sizes (then to a multiple of the largest), so
 # that a run compiles a handful of shapes, not one per batch length.
 BATCH_SIZES = (1, 8, 32, 128)
@@ -269,9 +290,11 @@ def estimate_batch(
     if _use_vmap():
         size = max(pad_to or padded_size(n), n)
         batch = np.stack(images + [images[0]] * (size - n))
-        out = _measure_batch(jnp.asarray(batch), *args)
+        frames = jnp.asarray(batch)
+        out = compiled_measure(True, frames, *args)(frames, *args)
     else:
-        each = [_measure_one(jnp.asarray(im), *args) for im in images]
+        one = compiled_measure(False, jnp.asarray(images[0]), *args)
+        each = [one(jnp.asarray(im), *args) for im in images]
         # NumPy, not jnp.stack: eager JAX ops would each compile once per process.
         out = jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *each)
     out = jax.tree_util.tree_map(np.asarray, out)

@@ -1,0 +1,60 @@
+"""The exported soft method kept on disk (sinkjax.app.executables): a corrupt, truncated or
+foreign file costs a fresh export, never a failed run or a changed number."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from sinkjax import synth as S
+from sinkjax.app.executables import ExecutableCache, cache_key
+from sinkjax.soft import estimator as E
+
+
+def _frame() -> tuple[np.ndarray, object]:
+    scene = S.recording_scenes(np.random.default_rng(3), 1, width=200, height=150)[0]
+    return S.render(scene, seed=0)[0], S.rig_for(scene)
+
+
+def _numbers(results) -> list[tuple]:
+    return [(r.status, r.sinkage_mm, r.theta1_deg, r.theta2_deg, r.radius_px) for r in results]
+
+
+def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> None:
+    image, rig = _frame()
+    try:
+        reference = _numbers(E.estimate_batch([image], rig, ["f"]))  # plain jit, no cache
+        E.set_compiled_provider(ExecutableCache(tmp_path))
+        fresh = _numbers(E.estimate_batch([image], rig, ["f"]))
+        (path,) = tmp_path.glob("*.bin")
+        data = path.read_bytes()
+        for broken in (data[: len(data) // 2], data[:-40] + b"x" * 40, b"not a file"):
+            path.write_bytes(broken)
+            E.set_compiled_provider(ExecutableCache(tmp_path))  # a new process, in effect
+            with caplog.at_level(logging.INFO, logger="sinkjax"):
+                caplog.clear()
+                again = _numbers(E.estimate_batch([image], rig, ["f"]))
+            assert any("unusable" in m for m in caplog.messages)
+            assert again == fresh
+        # Rewritten by the last run: the next loads it silently.
+        E.set_compiled_provider(ExecutableCache(tmp_path))
+        with caplog.at_level(logging.INFO, logger="sinkjax"):
+            caplog.clear()
+            loaded = _numbers(E.estimate_batch([image], rig, ["f"]))
+        assert not caplog.messages
+    finally:
+        E.set_compiled_provider(None)
+    assert fresh == reference
+    assert loaded == reference
+
+
+def test_key_depends_on_shapes_dtypes_and_structure() -> None:
+    a = (np.zeros((4, 5, 3), np.uint8), (np.float64(1.0), None))
+    assert cache_key("f", a) == cache_key(
+        "f", (np.ones((4, 5, 3), np.uint8), (np.float64(2), None))
+    )
+    assert cache_key("f", a) != cache_key("g", a)
+    assert cache_key("f", a) != cache_key("f", (np.zeros((4, 6, 3), np.uint8), a[1]))
+    assert cache_key("f", a) != cache_key("f", (np.zeros((4, 5, 3), np.float32), a[1]))
+    assert cache_key("f", a) != cache_key("f", (a[0], (np.float64(1.0), np.float64(1.0))))
