@@ -281,18 +281,17 @@ def report(res: dict, seconds: float) -> str:
         "",
         "## Reading",
         "",
-        "- A new rig no longer compiles (the rig's numbers are traced) and a new process loads "
-        "the compiled code from the persistent cache; what is left per image size and process "
-        "is tracing and lowering the method (about a second) and loading it. A campaign of four "
-        "image sizes pays that four times, where the classic method pays about a second in all: "
-        "in this run about half of the soft/classic gap of section 2 (compare the compile times "
-        "in the summary lines); the rest is per-frame cost on the larger images. "
-        "Serialising the traced function per image size (`jax.export`) would "
-        "remove the tracing; not done here.",
-        "- `--workers 2` on this 2-core machine cannot win on so little work: starting the "
-        "cluster and its worker processes costs seconds, every worker pays the per-size start-up "
-        "above, and the two workers share the two cores with the driver. It is built for many "
-        "and long recordings on more cores or a cluster; the CSVs are byte-identical either way.",
+        "- A new rig no longer compiles (the rig's numbers are traced), and a new process "
+        "neither traces nor compiles the soft method: it loads the method exported per image "
+        "size (`jax.export`, `sinkjax.app.executables`) and its executable from the persistent "
+        "cache. What is left per image size and process is that load (about a second, most "
+        "of it deserialising the executable) and the jax import per process; compare the "
+        "compile times in the summary lines of section 2.",
+        "- `--workers 2` on this 2-core machine shares the two cores between the driver and "
+        "two worker processes, each of which imports jax and loads the functions of the image "
+        "sizes it is given (each size prefers one worker); starting the cluster costs seconds. "
+        "It is built for many and long recordings on more cores or a cluster; the CSVs are "
+        "byte-identical either way.",
         "- Per frame, the outline (mask gradient, non-maximum suppression, sub-pixel refinement "
         "on the colour profile) and the HSI conversion of the whole image dominate; the fit "
         "and covariance are a few ms. Working only in a band around the rim is the next step.",
