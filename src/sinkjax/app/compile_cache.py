@@ -3,9 +3,10 @@
 The soft method compiles once per image size (the rig's numbers are traced, see
 :class:`sinkjax.soft.estimator.RigArrays`). Within a process that compile is reused; the
 persistent cache keeps it on disk so that the next run, or the next worker process of a
-parallel run, loads it in about a second instead of compiling for tens. The cache is set up by
-the command line (``sinkjax estimate``, ``sinkjax demo``), never on importing the library:
-a program that uses sinkjax keeps its own JAX configuration.
+parallel run, loads it in about a second instead of compiling for tens; the soft method's
+executables are kept there too (:mod:`sinkjax.app.executables`), so that a new process need not
+even trace it. The cache is set up by the command line (``sinkjax estimate``, ``sinkjax demo``),
+never on importing the library: a program that uses sinkjax keeps its own JAX configuration.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from __future__ import annotations
 import os
 import threading
 from pathlib import Path
+
+from .executables import LOAD_EVENT
 
 CACHE_ENV = "SINKJAX_CACHE_DIR"
 OFF = ("off", "none", "0", "")
@@ -24,6 +27,7 @@ _COMPILE_EVENTS = frozenset(
         "/jax/core/compile/jaxpr_trace_duration",
         "/jax/core/compile/jaxpr_to_mlir_module_duration",
         "/jax/core/compile/backend_compile_duration",
+        LOAD_EVENT,
     }
 )
 
@@ -57,6 +61,11 @@ def enable_compile_cache(path: str | Path | None) -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(target))
     # Keep every soft-method compile (the default skips those under a second).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    # And the soft method's executables themselves, which a new process loads without tracing.
+    from ..soft.batch import set_compiled_provider
+    from .executables import ExecutableCache
+
+    set_compiled_provider(ExecutableCache(target / "executables"))
     return target
 
 

@@ -311,12 +311,27 @@ class ParallelRun:
         done (later ones wait on the cluster). Raises WorkerCannotRead as the workers do."""
         # The first task of each image size goes first: the workers then compile different
         # sizes at the same time, and the later tasks load them from the shared compile cache.
-        seen: set[tuple[int, int] | None] = set()
+        # Each image size prefers one worker (round robin over the sizes), which then keeps
+        # its compiled function: a worker loads a few sizes, not all. Only a preference, so a
+        # task of a dead or busy worker still runs elsewhere.
+        workers = sorted(self._client.scheduler_info().get("workers", {}))
+        home: dict[tuple[int, int] | None, list[str] | None] = {}
         futures = []
         for t in tasks:
-            first = t.size_hint is not None and t.size_hint not in seen
-            seen.add(t.size_hint)
-            futures.append(self._client.submit(run_task, t, pure=False, priority=int(first)))
+            first = t.size_hint is not None and t.size_hint not in home
+            if t.size_hint not in home:
+                home[t.size_hint] = (
+                    [workers[len(home) % len(workers)]]
+                    if workers and t.size_hint is not None
+                    else None
+                )
+            prefer: dict[str, Any] = (
+                {} if home[t.size_hint] is None
+                else {"workers": home[t.size_hint], "allow_other_workers": True}
+            )  # fmt: skip
+            futures.append(
+                self._client.submit(run_task, t, pure=False, priority=int(first), **prefer)
+            )
         try:
             for i, task in enumerate(tasks):
                 result: TaskResult = futures[i].result()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -65,6 +66,22 @@ _finish_one = jax.jit(_finish_u8)
 _prepare_batch = jax.jit(jax.vmap(_prepare_u8, in_axes=(0, None, None, None)))
 _rechoose_batch = jax.jit(jax.vmap(rechoose, in_axes=(0, None)))
 _finish_batch = jax.jit(jax.vmap(_finish_u8, in_axes=(0, 0, None)))
+
+# (name, jitted function, example arguments) -> the callable to run on arguments of that shape.
+CompiledProvider = Callable[[str, Any, tuple[Any, ...]], Callable[..., Any]]
+_provider: CompiledProvider | None = None
+
+
+def set_compiled_provider(provider: CompiledProvider | None) -> None:
+    """Let the application layer supply the compiled functions (e.g. exported functions loaded
+    from disk, :mod:`sinkjax.app.executables`); None: the jitted functions themselves."""
+    global _provider
+    _provider = provider
+
+
+def _compiled(name: str, fn: Any, args: tuple[Any, ...]) -> Callable[..., Any]:
+    return fn if _provider is None else _provider(name, fn, args)
+
 
 # Accelerator batches are padded to one of these sizes (then to a multiple of the largest), so
 # that a run compiles a handful of shapes, not one per batch length.
@@ -226,18 +243,27 @@ class _Run:
             return [jnp.asarray(np.stack(images + [images[0]] * (size - n)))]
         return [jnp.asarray(im) for im in images]
 
+    def _fn(self, name: str, args: tuple[Any, ...]) -> Callable[..., Any]:
+        fns = {
+            "prepare": (_prepare_one, _prepare_batch),
+            "rechoose": (_rechoose_one, _rechoose_batch),
+            "finish": (_finish_one, _finish_batch),
+        }
+        fn = fns[name][int(self.vmap)]
+        return _compiled(f"{name}_batch" if self.vmap else f"{name}_one", fn, args)
+
     def prepare(self, images: list[np.ndarray], rim: RecordingRim) -> list[Prepared]:
         frames = self._frames(images)
-        fn = _prepare_batch if self.vmap else _prepare_one
+        fn = self._fn("prepare", (frames[0], self.seg, self.arrays, rim))
         return [fn(f, self.seg, self.arrays, rim) for f in frames]
 
     def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
-        fn = _rechoose_batch if self.vmap else _rechoose_one
+        fn = self._fn("rechoose", (prepared[0], rim))
         return [fn(p, rim) for p in prepared]
 
     def finish(self, images: list[np.ndarray], prepared: list[Prepared]) -> SoftEstimate:
         frames = self._frames(images)
-        fn = _finish_batch if self.vmap else _finish_one
+        fn = self._fn("finish", (frames[0], prepared[0], self.arrays))
         each = [fn(f, p, self.arrays) for f, p in zip(frames, prepared, strict=True)]
         if self.vmap:
             return jax.tree_util.tree_map(np.asarray, each[0])

@@ -1,0 +1,67 @@
+"""The exported soft method kept on disk (sinkjax.app.executables): a corrupt, truncated or
+foreign file costs a fresh export, never a failed run or a changed number."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from sinkjax import synth as S
+from sinkjax.app.executables import ExecutableCache, cache_key
+from sinkjax.soft import batch as E
+
+
+def _frame() -> tuple[np.ndarray, object]:
+    scene = S.recording_scenes(np.random.default_rng(3), 1, width=200, height=150)[0]
+    return S.render(scene, seed=0)[0], S.rig_for(scene)
+
+
+def _numbers(results) -> list[tuple]:
+    return [(r.status, r.sinkage_mm, r.theta1_deg, r.theta2_deg, r.radius_px) for r in results]
+
+
+def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> None:
+    image, rig = _frame()
+    try:
+        reference = _numbers(E.estimate_batch([image], rig, ["f"]))  # plain jit, no cache
+        E.set_compiled_provider(ExecutableCache(tmp_path))
+        fresh = _numbers(E.estimate_batch([image], rig, ["f"]))
+        # prepare, finish (with the frame's own rim), rechoose (with the recording's)
+        paths = sorted(tmp_path.glob("*.bin"))
+        assert len(paths) == 3
+        datas = [p.read_bytes() for p in paths]
+        for cut in (
+            lambda d: d[: len(d) // 2],
+            lambda d: d[:-40] + b"x" * 40,
+            lambda d: b"not a file",
+        ):
+            for path, data in zip(paths, datas, strict=True):
+                path.write_bytes(cut(data))
+            E.set_compiled_provider(ExecutableCache(tmp_path))  # a new process, in effect
+            with caplog.at_level(logging.INFO, logger="sinkjax"):
+                caplog.clear()
+                again = _numbers(E.estimate_batch([image], rig, ["f"]))
+            assert any("unusable" in m for m in caplog.messages)
+            assert again == fresh
+        # Rewritten by the last run: the next loads it silently.
+        E.set_compiled_provider(ExecutableCache(tmp_path))
+        with caplog.at_level(logging.INFO, logger="sinkjax"):
+            caplog.clear()
+            loaded = _numbers(E.estimate_batch([image], rig, ["f"]))
+        assert not [m for m in caplog.messages if "exported function" in m]
+    finally:
+        E.set_compiled_provider(None)
+    assert fresh == reference
+    assert loaded == reference
+
+
+def test_key_depends_on_shapes_dtypes_and_structure() -> None:
+    a = (np.zeros((4, 5, 3), np.uint8), (np.float64(1.0), None))
+    assert cache_key("f", a) == cache_key(
+        "f", (np.ones((4, 5, 3), np.uint8), (np.float64(2), None))
+    )
+    assert cache_key("f", a) != cache_key("g", a)
+    assert cache_key("f", a) != cache_key("f", (np.zeros((4, 6, 3), np.uint8), a[1]))
+    assert cache_key("f", a) != cache_key("f", (np.zeros((4, 5, 3), np.float32), a[1]))
+    assert cache_key("f", a) != cache_key("f", (a[0], (np.float64(1.0), np.float64(1.0))))
