@@ -272,7 +272,9 @@ class _Run:
 
 def _vote(out: SoftEstimate, n: int) -> RecordingRim:
     """The recording's rim from the first ``n`` frames' own fits (per-frame if no consensus)."""
-    found = combine_rims(out.params[:n, :3], _rim_evidence(out, n), min_support=_min_support())
+    found = combine_rims(
+        np.asarray(out.params[:n, :3]), _rim_evidence(out, n), min_support=_min_support()
+    )
     return RecordingRim.per_frame() if found is None else found
 
 

@@ -173,4 +173,5 @@ def combine_rims(
     mean = c.mean(axis=0)
     # The spread of one frame's circle; a single frame's is unknown: assume a third of a pixel.
     spread = float(np.max(c.std(axis=0, ddof=1))) if len(c) >= 2 else 0.3
-    return RecordingRim.fixed(*(float(v) for v in mean), std_px=spread / np.sqrt(len(c)))
+    cx, cy, r = (float(v) for v in mean)
+    return RecordingRim.fixed(cx, cy, r, std_px=spread / np.sqrt(len(c)))
