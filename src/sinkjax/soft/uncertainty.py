@@ -4,38 +4,136 @@ Each residual group (rim, boundary + ends) gets its own noise level from its wei
 Neighbouring outline points are not independent (the mask is smoothed and the image blurred over a
 few pixels), so the covariance is inflated by a correlation length in points. What the fit cannot
 see (segmentation bias shared by a whole edge, JPEG, blur) is an error floor added in quadrature.
-Both constants were measured on synthetic recordings disjoint from the benchmark's
-(``experiments/uncertainty_calibration.py``).
+The errors are heavier-tailed than a Gaussian (a frame's sigma is itself uncertain), so the
+reported one-sigma is the scale of a Student-t with ``dof_*`` degrees of freedom: an interval at
+level p is value ± :meth:`UncertaintyModel.multiplier` (p) · sigma (for a 95 % interval about
+2.3 sigma rather than 1.96). All constants, per quantity, are maximum-likelihood fits on synthetic
+recordings disjoint from the benchmark's (``experiments/uncertainty_calibration.py``).
 """
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .model import N_PARAMS, Evidence, measurements, residuals
 
+QUANTITIES = ("sinkage", "theta1", "theta2")  # the order of every per-quantity stack
+# Above this many degrees of freedom the quantile's expansion in 1/dof (Cornish-Fisher, three
+# terms) is exact to 1e-7; below it the bisection is, in float32 too.
+_EXPANSION_DOF = 100.0
+_BISECTIONS = 100
+
+
+def central_multiplier(level: ArrayLike, dof: ArrayLike = math.inf) -> Float[Array, "*shape"]:
+    """Half-width, in scale units, of the central interval holding ``level`` of a Student-t with
+    ``dof`` degrees of freedom (``math.inf``: the Gaussian, 1.96 at 0.95). Broadcasts; jit-able.
+
+    Solves P(|T| <= k) = 1 - I_x(dof/2, 1/2) = level, x = dof / (dof + k^2), for x by bisection
+    (I the regularised incomplete beta function); for dof >= 100 the expansion of the quantile
+    about the Gaussian's z in powers of 1/dof.
+    """
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+    shape = jnp.broadcast_shapes(jnp.shape(level), jnp.shape(dof))
+    p = jnp.broadcast_to(jnp.asarray(level, dtype), shape)
+    nu = jnp.broadcast_to(jnp.asarray(dof, dtype), shape)
+    z = jnp.sqrt(2.0) * jax.scipy.special.erfinv(p)
+    g = 1.0 / jnp.maximum(nu, _EXPANSION_DOF)  # 0 for the Gaussian
+    z2 = z * z
+    expansion = z * (
+        1.0
+        + g * (z2 + 1.0) / 4.0
+        + g**2 * ((5.0 * z2 + 16.0) * z2 + 3.0) / 96.0
+        + g**3 * (((3.0 * z2 + 19.0) * z2 + 17.0) * z2 - 15.0) / 384.0
+    )
+    t_like = nu < _EXPANSION_DOF
+    a = 0.5 * jnp.where(t_like, nu, 1.0)
+    target = 1.0 - p
+
+    def halve(_: Array, bounds: tuple[Array, Array]) -> tuple[Array, Array]:
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        above = jax.scipy.special.betainc(a, 0.5, mid) > target
+        return jnp.where(above, lo, mid), jnp.where(above, mid, hi)
+
+    lo, hi = jax.lax.fori_loop(
+        0, _BISECTIONS, halve, (jnp.zeros(shape, dtype), jnp.ones(shape, dtype))
+    )
+    x = jnp.clip(0.5 * (lo + hi), jnp.finfo(dtype).tiny, 1.0)
+    student = jnp.sqrt(2.0 * a * (1.0 - x) / x)
+    return jnp.where(t_like, student, expansion)
+
 
 class UncertaintyModel(eqx.Module):
-    """How the fit's statistical covariance becomes an honest one-sigma.
+    """How the fit's statistical covariance becomes an honest one-sigma, per quantity.
 
-    ``scale_*`` multiply the delta-method sigma (the correlation between neighbouring outline
-    points, as a square-root correlation length); ``floor_*`` are added in quadrature (error that
-    the residuals cannot see: a shared shift of a whole edge by blur, JPEG or segmentation).
+    For each of sinkage z0, entry angle θ1 and exit angle θ2: ``scale_*`` multiplies the
+    delta-method sigma (the correlation between neighbouring outline points, as a square-root
+    correlation length); ``floor_*`` is added in quadrature (error that the residuals cannot see:
+    a shared shift of a whole edge by blur, JPEG or segmentation); ``dof_*`` are the degrees of
+    freedom of the Student-t that error / sigma follows (``math.inf``: Gaussian). The reported
+    sigma (the ``*_std_*`` columns, docs/conventions.md §4) is the t's scale; the interval at
+    level p is value ± ``multiplier(p)`` · sigma, e.g. a 95 % interval for the sinkage::
+
+        k = float(UncertaintyModel().multiplier(0.95, "sinkage"))
+        low, high = sinkage_mm - k * sinkage_std_mm, sinkage_mm + k * sinkage_std_mm
+
     The defaults are maximum-likelihood fits on synthetic recordings disjoint from the benchmark
-    (``experiments/uncertainty_calibration.py``); ``UncertaintyModel.raw()`` turns all of it off.
+    (``python experiments/uncertainty_calibration.py --update-source`` refits and rewrites them);
+    ``UncertaintyModel.raw()`` turns all of it off (scale 1, no floor, Gaussian).
     """
 
     scale_sinkage: float = 1.6
-    scale_angle: float = 2.57
+    scale_theta1: float = 2.57
+    scale_theta2: float = 2.57
     floor_sinkage_px: float = 0.11
-    floor_angle_deg: float = 0.07
+    floor_theta1_deg: float = 0.07
+    floor_theta2_deg: float = 0.07
+    dof_sinkage: float = math.inf
+    dof_theta1: float = math.inf
+    dof_theta2: float = math.inf
 
     @staticmethod
     def raw() -> UncertaintyModel:
-        return UncertaintyModel(1.0, 1.0, 0.0, 0.0)
+        """The delta-method sigma as it is: scale 1, no floor, Gaussian."""
+        return UncertaintyModel(1.0, 1.0, 1.0, 0.0, 0.0, 0.0)
+
+    def scales(self) -> Float[Array, " 3"]:
+        """The sigma scales of z0, θ1, θ2."""
+        return jnp.stack([jnp.asarray(self.scale_sinkage), self.scale_theta1, self.scale_theta2])
+
+    def floors(self) -> Float[Array, " 3"]:
+        """The floors of z0 (px), θ1 and θ2 (deg)."""
+        return jnp.stack(
+            [jnp.asarray(self.floor_sinkage_px), self.floor_theta1_deg, self.floor_theta2_deg]
+        )
+
+    def dofs(self) -> Float[Array, " 3"]:
+        """The Student-t degrees of freedom of z0, θ1, θ2 (inf: Gaussian)."""
+        return jnp.stack([jnp.asarray(self.dof_sinkage), self.dof_theta1, self.dof_theta2])
+
+    def multiplier(self, level: ArrayLike, quantity: str | None = None) -> Float[Array, "*q"]:
+        """How many sigmas each side of the value the central interval at ``level`` (e.g. 0.95)
+        spans: for ``quantity`` ("sinkage", "theta1" or "theta2") a scalar, else z0, θ1, θ2."""
+        dofs = self.dofs()
+        if quantity is not None:
+            if quantity not in QUANTITIES:
+                raise ValueError(f"quantity must be one of {QUANTITIES}, got {quantity!r}")
+            dofs = dofs[QUANTITIES.index(quantity)]
+        return central_multiplier(level, dofs)
+
+    def interval(
+        self, level: float, quantity: str, value: ArrayLike, std: ArrayLike
+    ) -> tuple[Float[Array, "*n"], Float[Array, "*n"]]:
+        """The central interval (low, high) at ``level`` around ``value`` with one-sigma ``std``
+        (the result's or the CSV's value and ``*_std_*`` column, any unit)."""
+        k = self.multiplier(level, quantity)
+        v, s = jnp.asarray(value), jnp.asarray(std)
+        return v - k * s, v + k * s
 
 
 def _group_scale(res: Array, w: Array) -> Array:
@@ -80,12 +178,9 @@ def measurement_std(
     g = jax.jacfwd(measurements)(p, wheel_radius_mm)
     var = jnp.maximum(jnp.einsum("ij,jk,ik->i", g, cov, g), 0.0)
     mm_per_px = 1.0 if wheel_radius_mm is None else wheel_radius_mm / jnp.maximum(p[2], 1.0)
-    scale = jnp.stack([m.scale_sinkage, m.scale_angle, m.scale_angle]).astype(p.dtype)
-    floor = jnp.stack(
-        [
-            m.floor_sinkage_px * mm_per_px,
-            jnp.radians(m.floor_angle_deg) * jnp.ones((), p.dtype),
-            jnp.radians(m.floor_angle_deg) * jnp.ones((), p.dtype),
-        ]
-    ).astype(p.dtype)
+    scale = m.scales().astype(p.dtype)
+    one = jnp.ones((), p.dtype)
+    floor = m.floors().astype(p.dtype) * jnp.stack(
+        [mm_per_px * one, jnp.radians(one), jnp.radians(one)]
+    )
     return jnp.sqrt(scale**2 * var + floor**2)
