@@ -6,7 +6,8 @@ with exact truth) and, for every frame the soft method measured (status ``ok``) 
 contact, compares the error |estimate - truth| with the reported one-sigma sigma:
 
 - reliability diagram: for nominal central coverage p, the fraction of frames with
-  |error| <= z_p sigma (z_p the Gaussian quantile), for z0, θ1 and θ2;
+  |error| <= z_p sigma (z_p the uncertainty model's multiplier for level p:
+  ``UncertaintyModel.multiplier``, a Student-t quantile), for z0, θ1 and θ2;
 - error against reported sigma: per sigma bin, the RMS error (a calibrated sigma gives RMS = sigma).
 
 Run the other experiments first (``run_all.py`` does).
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import statistics
 import sys
 import time
 from typing import Any
@@ -27,6 +27,7 @@ import numpy as np
 from common import records, report, runs
 
 from sinkjax import metrics as sm
+from sinkjax.soft.uncertainty import UncertaintyModel
 
 NAME = "exp_uncertainty"
 SOURCES = ("paper_terrain", "paper_precision", "paper_depth", "exp_lighting")
@@ -35,9 +36,9 @@ CURVE_LEVELS = tuple(float(p) for p in np.linspace(0.05, 0.99, 48))
 N_SIGMA_BINS = 6
 
 
-def z_for(p: float) -> float:
-    """Half-width in sigmas of the central Gaussian interval with coverage p."""
-    return statistics.NormalDist().inv_cdf(0.5 + 0.5 * p)
+def z_for(p: float, q: str) -> float:
+    """Half-width in sigmas of the soft method's central interval at level p for quantity q."""
+    return float(UncertaintyModel().multiplier(p, q))
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -75,7 +76,7 @@ def covered(recs: list[dict[str, Any]], q: str, p: float) -> np.ndarray:
         records.estimates(recs, "soft", q),
         records.estimates(recs, "soft", f"{q}_std"),
         records.statuses(recs, "soft"),
-        k=z_for(p),
+        k=z_for(p, q),
     )
 
 
@@ -129,7 +130,8 @@ def run(setup: runs.Setup) -> dict[str, Any]:
             ),
             "Every frame of the other experiments that the soft method measured (status `ok`, "
             f"true contact), default rig; {sm.RULE_COVERAGE}. Empirical coverage (%) of the "
-            "central interval ± z_p σ at nominal level p, with its 95 % Wilson interval; "
+            "central interval ± z_p σ at nominal level p (z_p: `UncertaintyModel.multiplier`), "
+            "with its 95 % Wilson interval; "
             "RMS z = RMS of error / σ (1 for a calibrated σ). Sources: "
             + ", ".join(f"`{s}`" for s in SOURCES)
             + ".",

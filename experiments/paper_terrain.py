@@ -31,6 +31,7 @@ import numpy as np
 from common import paper, records, report, runs, scenery
 
 from sinkjax import metrics as sm, synth as S
+from sinkjax.soft.uncertainty import UncertaintyModel
 
 NAME = "paper_terrain"
 TERRAINS = ("flat", "raised", "hollow", "rough")
@@ -106,6 +107,7 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
     """The report (Markdown, figure) and the summary, made from the records ``run`` saved."""
     recs, meta = records.load(setup, NAME)
     rows, checks, means = [], {"truth": 0, "classic": 0, "soft": 0}, []
+    k95 = float(UncertaintyModel().multiplier(0.95, "sinkage"))
     n_checked = 0
     for terrain in TERRAINS:
         for slip in SLIPS:
@@ -126,7 +128,7 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
             n_checked += bool(exp)
             means.append(
                 {"terrain": terrain, "slip": slip, "sensor": sensor, "true": true, "classic": cl}
-                | {"soft": so, "soft_std": sd}
+                | {"soft": so, "soft_half95": k95 * sd}
             )
             rows.append(
                 [
@@ -135,7 +137,7 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
                     report.fmt(sensor),
                     report.fmt(true),
                     report.fmt(cl),
-                    f"{report.fmt(so)} ± {report.fmt(1.96 * sd)}",
+                    f"{report.fmt(so)} ± {report.fmt(k95 * sd)}",
                     report.fmt(true - sensor, 2),
                     {1: "true > sensor", -1: "true < sensor", 0: "—"}[exp],
                     marks["truth"],
@@ -164,7 +166,8 @@ def write_report(setup: runs.Setup) -> dict[str, Any]:
             f"{MOUND_MM:g} mm mound; hollow: a hollow min({HOLLOW_MM:g} mm, z/2) deep; rough: "
             "digs of 0-8 mm varying along the track. True sinkage: Eq. 1 on the true surface. "
             f"{meta['per_run']} frame(s) per run (wheel phase, texture and feature positions "
-            "vary); values are run means; soft ± is the mean reported 95 % half-interval (1.96 σ). "
+            "vary); values are run means; soft ± is the mean reported 95 % half-interval "
+            f"({k95:.2f} σ, `UncertaintyModel().multiplier(0.95, 'sinkage')`). "
             f"Errors: {sm.RULE}; a run's mean is over its measured frames.",
             report.md_table(
                 [
@@ -247,12 +250,12 @@ def _figure(setup: runs.Setup, means: list[dict[str, Any]]) -> None:
     ax.errorbar(
         x + 0.2,
         [r["soft"] for r in means],
-        yerr=[1.96 * r["soft_std"] for r in means],
+        yerr=[r["soft_half95"] for r in means],
         fmt="s",
         ms=4,
         color=col["soft"],
         capsize=3,
-        label="soft ± 1.96σ",
+        label="soft, 95 % interval",
     )
     labels = [f"{r['terrain']}\ns={r['slip']:.1f}" for r in means]
     for a in (ax, ax2):

@@ -10,9 +10,10 @@ floor alone, so that any model's sigma = sqrt((a sigma_raw)^2 + (f sigma_unit)^2
 Per quantity (z0, θ1, θ2) the scale a, floor f and the degrees of freedom ν of a Student-t for
 error / sigma are fitted by maximum likelihood on the fit seed, beside a Gaussian (ν = ∞) fit for
 comparison (AIC). On the eval seed it reports the coverage of the central intervals value ±
-multiplier(p) sigma at p = 50/68/80/90/95/99 % for the current defaults, the Gaussian fit and the
-Student-t fit, and draws the reliability diagrams. Writes ``experiments/results/
-uncertainty_calibration.{md,json,png}`` and the per-frame ``uncertainty_calibration_frames.csv``.
+multiplier(p) sigma at p = 50/68/80/90/95/99 % for the current defaults, the Gaussian fit and
+the Student-t fits (ν per quantity, or one ν shared: ``--dof``), and draws the reliability
+diagrams. Writes ``experiments/results/uncertainty_calibration.{md,json,png}`` and the per-frame
+``uncertainty_calibration_frames.csv``.
 
     python experiments/uncertainty_calibration.py                  # measure, fit, report
     python experiments/uncertainty_calibration.py --update-source  # ... and rewrite the defaults
@@ -36,7 +37,7 @@ from scipy import optimize, special
 
 import sinkjax as sj
 from sinkjax import metrics as sm
-from sinkjax.soft.uncertainty import QUANTITIES, UncertaintyModel
+from sinkjax.soft.uncertainty import MIN_DOF, QUANTITIES, UncertaintyModel
 
 RESULTS = Path(__file__).parent / "results"
 NAME = "uncertainty_calibration"
@@ -46,7 +47,7 @@ ACCEPT = (0.5, 0.8, 0.95)  # coverage within TOLERANCE points of nominal at thes
 TOLERANCE = 3.0
 CURVE = tuple(float(p) for p in np.linspace(0.02, 0.995, 60))
 RAW = UncertaintyModel.raw()
-UNIT_FLOOR = UncertaintyModel(0.0, 0.0, 0.0, 1.0, 1.0, 1.0)  # sigma = the floor alone
+UNIT_FLOOR = UncertaintyModel(0.0, 0.0, 0.0, 1.0, 1.0, 1.0, *(3 * (math.inf,)))  # the floor alone
 # (truth attribute, result attribute, std attribute) per quantity; sinkage mm, angles deg
 ATTRS = {
     "sinkage": ("sinkage_mm", "sinkage_mm", "sinkage_std_mm"),
@@ -54,6 +55,11 @@ ATTRS = {
     "theta2": ("theta2_deg", "theta2_deg", "theta2_std_deg"),
 }
 LABELS = {"sinkage": "sinkage z0", "theta1": "entry angle θ1", "theta2": "exit angle θ2"}
+FITS = {  # the fits compared: key in the JSON -> name in the report
+    "gaussian": "Gaussian",
+    "student": "Student-t, ν per quantity",
+    "shared": "Student-t, one ν",
+}
 FLOOR_UNIT = {"sinkage": "px", "theta1": "deg", "theta2": "deg"}
 
 
@@ -114,6 +120,9 @@ class Data:
         ok = np.asarray([s == "ok" for s in status]) & np.isfinite(err)
         ok &= np.isfinite(raw) & (raw > 0) & np.isfinite(unit)
         self.err, self.raw, self.unit = err[ok], raw[ok], unit[ok]
+        # The recording (seed, index) of each frame: frames of one rig share their errors' causes.
+        rec = [(r["seed"], r["frame"].split("_")[0]) for r in rows]
+        self.recording = np.unique(np.asarray([str(x) for x in rec]), return_inverse=True)[1][ok]
 
     def sigma(self, scale: float, floor: float) -> np.ndarray:
         return np.sqrt((scale * self.raw) ** 2 + (floor * self.unit) ** 2)
@@ -132,32 +141,49 @@ def nll(d: Data, scale: float, floor: float, dof: float) -> float:
     return float(np.sum(np.log(s) + const + 0.5 * (dof + 1) * np.log1p(z2 / dof)))
 
 
-def fit(d: Data, student: bool) -> dict:
-    """Maximum-likelihood scale, floor (and dof for the Student-t) from a few starts."""
+def fit(d: Data, dof: float | None) -> dict:
+    """Maximum-likelihood scale and floor from a few starts, with error / sigma Student-t of
+    ``dof`` degrees of freedom (inf: Gaussian; None: dof fitted too)."""
+    free = dof is None
 
     def objective(x: np.ndarray) -> float:
-        return nll(d, math.exp(x[0]), math.exp(x[1]), math.exp(x[2]) if student else math.inf)
+        return nll(d, math.exp(x[0]), math.exp(x[1]), math.exp(x[2]) if free else dof)
 
     best = None
     for x0 in ((0.0, -2.0, 1.5), (1.0, -1.0, 1.0), (0.5, -4.0, 2.5)):
         r = optimize.minimize(
             objective,
-            np.asarray(x0 if student else (*x0[:2], 0.0)),
+            np.asarray(x0 if free else x0[:2]),
             method="L-BFGS-B",
-            bounds=[(-5, 5), (-9, 3), (math.log(0.7), math.log(1e3)) if student else (0, 0)],
+            bounds=[(-5, 5), (-9, 3), (math.log(MIN_DOF), math.log(1e3))][: 3 if free else 2],
         )
         if best is None or r.fun < best.fun:
             best = r
     assert best is not None
-    dof = math.exp(best.x[2]) if student else math.inf
-    k = 3 if student else 2
     return {
         "scale": math.exp(best.x[0]),
         "floor": math.exp(best.x[1]),
-        "dof": dof,
+        "dof": math.exp(best.x[2]) if free else dof,
         "nll": float(best.fun),
-        "aic": 2 * k + 2 * float(best.fun),
+        "aic": 2 * (3 if free else 2) + 2 * float(best.fun),
     }
+
+
+SHARED_DOF_GRID = (*np.geomspace(MIN_DOF, 100.0, 41).tolist(), math.inf)
+
+
+def fit_shared(ds: dict[str, Data]) -> dict[str, dict]:
+    """One dof for all three quantities (maximum likelihood over a grid), each quantity its own
+    scale and floor: fewer parameters, so less at the mercy of a few frames in the tails."""
+    best: dict[str, dict] | None = None
+    for dof in SHARED_DOF_GRID:
+        fits = {q: fit(d, dof) for q, d in ds.items()}
+        if best is None or sum(f["nll"] for f in fits.values()) < sum(
+            f["nll"] for f in best.values()
+        ):
+            best = fits
+    assert best is not None
+    return best
 
 
 def model_from(params: dict[str, dict]) -> UncertaintyModel:
@@ -169,12 +195,37 @@ def model_from(params: dict[str, dict]) -> UncertaintyModel:
     )
 
 
+def reported_sigma(d: Data, model: UncertaintyModel, q: str) -> np.ndarray:
+    """The sigma ``model`` reports for each frame (its t's standard deviation)."""
+    i = QUANTITIES.index(q)
+    scale = d.sigma(float(model.scales()[i]), float(model.floors()[i]))
+    return scale * float(model.std_factors()[i])
+
+
 def coverage(d: Data, model: UncertaintyModel, q: str, levels: tuple[float, ...]) -> list[float]:
     """Empirical coverage (%) of value ± multiplier(p) sigma at each level p."""
-    i = QUANTITIES.index(q)
-    sigma = d.sigma(float(model.scales()[i]), float(model.floors()[i]))
+    sigma = reported_sigma(d, model, q)
     ks = np.asarray(model.multiplier(np.asarray(levels), q))
     return [100 * float(np.mean(np.abs(d.err) <= k * sigma)) for k in ks]
+
+
+def bootstrap_range(
+    d: Data, model: UncertaintyModel, q: str, n: int = 400, seed: int = 0
+) -> list[tuple[float, float]]:
+    """5th-95th percentile of the coverage at each level over resamplings of the recordings (the
+    sampling noise of a coverage measured on this many rigs)."""
+    ks = np.asarray(model.multiplier(np.asarray(LEVELS), q))
+    hit = np.abs(d.err)[:, None] <= ks * reported_sigma(d, model, q)[:, None]
+    rng = np.random.default_rng(seed)
+    recs = np.unique(d.recording)
+    covs = []
+    for _ in range(n):
+        keep = np.concatenate(
+            [np.flatnonzero(d.recording == r) for r in rng.choice(recs, recs.size)]
+        )
+        covs.append(100 * hit[keep].mean(axis=0))
+    lo, hi = np.percentile(np.asarray(covs), [5, 95], axis=0)
+    return [(float(a), float(b)) for a, b in zip(lo, hi, strict=True)]
 
 
 def excess_kurtosis(z: np.ndarray) -> float:
@@ -202,9 +253,11 @@ def update_source(model: UncertaintyModel) -> None:
 # ----------------------------------------------------------------------------- report
 
 
-def _figure(path: Path, ev: dict[str, Data], models: dict[str, UncertaintyModel]) -> None:
+def _figure(
+    path: Path, ev: dict[str, Data], models: dict[str, UncertaintyModel], chosen: str
+) -> None:
     fig, axes = report.figure(2, 3, (15.0, 9.0))
-    styles = {"current defaults": ":", "Gaussian fit": "--", "Student-t fit": "-"}
+    styles = dict(zip(models, (":", "--", "-.", "-"), strict=True))
     for j, q in enumerate(QUANTITIES):
         ax = axes[0, j]
         p = np.asarray(CURVE)
@@ -227,10 +280,10 @@ def _figure(path: Path, ev: dict[str, Data], models: dict[str, UncertaintyModel]
         ax.legend(fontsize=8, loc="upper left")
         ax = axes[1, j]
         i = QUANTITIES.index(q)
-        for name, ref in (("Gaussian fit", math.inf), ("Student-t fit", None)):
+        for name in (FITS["gaussian"], chosen):
             m = models[name]
-            z = np.sort(ev[q].err / ev[q].sigma(float(m.scales()[i]), float(m.floors()[i])))
-            dof = float(m.dofs()[i]) if ref is None else ref
+            z = np.sort(ev[q].err / reported_sigma(ev[q], m, q))
+            dof = float(m.dofs()[i])
             u = (np.arange(z.size) + 0.5) / z.size
             theo = np.sign(u - 0.5) * np.asarray(m.multiplier(np.abs(2 * u - 1), q))
             label = name + ("" if math.isinf(dof) else f" (ν = {dof:.1f})")
@@ -252,42 +305,43 @@ def _md(data: dict) -> str:
     lines = [
         "# Uncertainty calibration of the soft method",
         f"Generated by `python experiments/{NAME}.py` in {data['seconds']:.0f} s on "
-        f"{data['machine']}. Full-mix synthetic recordings (lugs, shadows, all terrains, "
-        f"sizes {', '.join(data['sizes'])}): fit on seed {data['fit_seed']} "
+        f"{data['machine']}"
+        + (
+            f" (seeds {', '.join(map(str, data['reused_seeds']))} taken from the saved frames)"
+            if data["reused_seeds"]
+            else ""
+        )
+        + ". Full-mix synthetic recordings (lugs, shadows, all terrains, "
+        f"sizes {', '.join(data['sizes'])}): fit on seeds "
+        f"{', '.join(map(str, data['fit_seeds']))} "
         f"({data['fit_frames']} frames), report on seed {data['eval_seed']} "
-        f"({data['eval_frames']} frames), both disjoint from the benchmark's. Per quantity the "
+        f"({data['eval_frames']} frames), all disjoint from the benchmark's. Per quantity the "
         "sigma is sqrt((a σ_raw)² + f²) (σ_raw: the delta method; f in px for z0, deg for the "
         "angles), fitted by maximum likelihood with error / sigma Gaussian or Student-t; ν ≥ 100 "
         f"is stored as Gaussian. Coverage: {sm.RULE_COVERAGE}; the interval at level p is value "
         "± multiplier(p) σ (`UncertaintyModel.multiplier`).",
-        "## Fit (calibration seed)",
+        "## Fit (calibration seeds)",
         report.md_table(
-            [
-                "quantity",
-                "frames",
-                "Gaussian a",
-                "Gaussian f",
-                "Student-t a",
-                "Student-t f",
-                "ν",
-                "AIC Gaussian - t",
-                "excess kurtosis of error/σ (Gaussian fit)",
-            ],
+            ["quantity", "fit", "frames", "scale a", "floor f", "ν", "-log likelihood"],
             [
                 [
                     LABELS[q],
+                    name,
                     str(f["frames"]),
-                    fmt(f["gaussian"]["scale"], 3),
-                    f"{fmt(f['gaussian']['floor'], 3)} {FLOOR_UNIT[q]}",
-                    fmt(f["student"]["scale"], 3),
-                    f"{fmt(f['student']['floor'], 3)} {FLOOR_UNIT[q]}",
-                    fmt(f["student"]["dof"], 1),
-                    fmt(f["gaussian"]["aic"] - f["student"]["aic"], 1),
-                    fmt(f["kurtosis"], 1),
+                    fmt(f[key]["scale"], 3),
+                    f"{fmt(f[key]['floor'], 3)} {FLOOR_UNIT[q]}",
+                    "∞" if f[key]["dof"] is None else fmt(f[key]["dof"], 1),
+                    fmt(f[key]["nll"], 1),
                 ]
                 for q, f in data["fit"].items()
+                for key, name in FITS.items()
             ],
         ),
+        "Akaike information criterion over the three quantities (lower is better): "
+        + ", ".join(f"{FITS[k]} {fmt(v, 1)}" for k, v in data["aic"].items())
+        + ". Excess kurtosis of error / σ under the Gaussian fit (0 for Gaussian errors): "
+        + ", ".join(f"{LABELS[q]} {fmt(f['kurtosis'], 1)}" for q, f in data["fit"].items())
+        + ".",
         f"Model written as the defaults: `{data['model']}`.",
         f"## Coverage (%) on the held-out seed {data['eval_seed']}",
     ]
@@ -295,10 +349,14 @@ def _md(data: dict) -> str:
     for q in QUANTITIES:
         for name, cov in data["coverage"][q].items():
             rows.append([LABELS[q], name] + [fmt(c, 1) for c in cov])
+        rows.append(
+            [LABELS[q], f"{data['chosen']}: 5-95 % over resampled recordings"]
+            + [f"{lo:.0f}-{hi:.0f}" for lo, hi in data["coverage_range"][q]]
+        )
     lines.append(report.md_table(["quantity", "model"] + [f"{100 * p:g} %" for p in LEVELS], rows))
     verdict = data["acceptance"]
     lines.append(
-        f"Acceptance (Student-t fit within {TOLERANCE:g} points of nominal at "
+        f"Acceptance ({data['chosen']} within {TOLERANCE:g} points of nominal at "
         f"{', '.join(f'{100 * p:g} %' for p in ACCEPT)} for z0, θ1 and θ2): "
         + ("**met**." if verdict["met"] else "**not met**: " + "; ".join(verdict["misses"]) + ".")
     )
@@ -311,12 +369,19 @@ def _md(data: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--fit-seed", type=int, default=4242)
-    ap.add_argument("--eval-seed", type=int, default=7331)
-    ap.add_argument("--recordings", type=int, default=16)
-    ap.add_argument("--frames-per", type=int, default=12)
+    ap.add_argument("--fit-seeds", type=int, nargs="+", default=[4242, 7331])
+    ap.add_argument("--eval-seed", type=int, default=9001)
+    ap.add_argument("--recordings", type=int, default=40)
+    ap.add_argument("--frames-per", type=int, default=6)
     ap.add_argument("--quick", action="store_true", help="3 recordings x 8 frames, 640x480")
-    ap.add_argument("--reuse", action="store_true", help="refit from the saved frames CSV")
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="take the seeds already in the saved frames CSV from it (measure only the others)",
+    )
+    ap.add_argument(
+        "--dof", choices=("shared", "student"), default="shared", help="which fit is the model"
+    )
     ap.add_argument("--update-source", action="store_true", help="rewrite the defaults")
     ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args(argv)
@@ -326,36 +391,43 @@ def main(argv: list[str] | None = None) -> int:
         args.recordings, args.frames_per = 3, 8
     args.out_dir.mkdir(parents=True, exist_ok=True)
     frames_csv = args.out_dir / f"{NAME}_frames.csv"
-    if args.reuse:
-        rows = load_rows(frames_csv)
-    else:
-        rows = []
-        for seed in (args.fit_seed, args.eval_seed):
+    seeds = [*args.fit_seeds, args.eval_seed]
+    if args.eval_seed in args.fit_seeds:
+        raise SystemExit("the evaluation seed must differ from the fit seeds")
+    saved = load_rows(frames_csv) if args.reuse and frames_csv.exists() else []
+    rows = [r for r in saved if int(r["seed"]) in seeds]
+    measured = 0
+    for seed in seeds:
+        if not any(int(r["seed"]) == seed for r in rows):
             rows += measure(seed, args.recordings, args.frames_per, sizes)
+            measured += 1
+    if measured:
         save_rows(frames_csv, rows)
-    fit_rows = [r for r in rows if int(r["seed"]) == args.fit_seed]
+    fit_rows = [r for r in rows if int(r["seed"]) in args.fit_seeds]
     eval_rows = [r for r in rows if int(r["seed"]) == args.eval_seed]
     tr = {q: Data(fit_rows, q) for q in QUANTITIES}
     ev = {q: Data(eval_rows, q) for q in QUANTITIES}
+    shared = fit_shared(tr)
     fits = {}
     for q in QUANTITIES:
-        g, t = fit(tr[q], student=False), fit(tr[q], student=True)
+        g = fit(tr[q], math.inf)
         z = tr[q].err / tr[q].sigma(g["scale"], g["floor"])
-        fits[q] = {"frames": int(tr[q].err.size), "gaussian": g, "student": t}
-        fits[q]["kurtosis"] = excess_kurtosis(z)
-    student = model_from({q: f["student"] for q, f in fits.items()})
-    gaussian = model_from({q: f["gaussian"] for q, f in fits.items()})
-    models = {"current defaults": UncertaintyModel(), "Gaussian fit": gaussian}
-    models["Student-t fit"] = student
+        fits[q] = {"frames": int(tr[q].err.size), "gaussian": g, "student": fit(tr[q], None)}
+        fits[q] |= {"shared": shared[q], "kurtosis": excess_kurtosis(z)}
+    models = {"current defaults": UncertaintyModel()}
+    for key, name in FITS.items():
+        models[name] = model_from({q: f[key] for q, f in fits.items()})
+    chosen = FITS[args.dof]
     cov = {q: {n: coverage(ev[q], m, q, LEVELS) for n, m in models.items()} for q in QUANTITIES}
     misses = [
         f"{q} {100 * p:g} %: {c:.1f}"
         for q in QUANTITIES
-        for p, c in zip(LEVELS, cov[q]["Student-t fit"], strict=True)
+        for p, c in zip(LEVELS, cov[q][chosen], strict=True)
         if p in ACCEPT and abs(c - 100 * p) > TOLERANCE
     ]
     data = {
-        "fit_seed": args.fit_seed,
+        "fit_seeds": args.fit_seeds,
+        "reused_seeds": [x for x in seeds if any(int(r["seed"]) == x for r in saved)],
         "eval_seed": args.eval_seed,
         "fit_frames": len(fit_rows),
         "eval_frames": len(eval_rows),
@@ -363,14 +435,17 @@ def main(argv: list[str] | None = None) -> int:
         "levels": list(LEVELS),
         "fit": {
             q: f
-            | {
-                m: f[m] | {"dof": None if math.isinf(f[m]["dof"]) else f[m]["dof"]}
-                for m in ("gaussian", "student")
-            }
+            | {m: f[m] | {"dof": None if math.isinf(f[m]["dof"]) else f[m]["dof"]} for m in FITS}
             for q, f in fits.items()
         },
-        "model": repr(student),
+        "aic": {
+            k: 2 * sum(f[k]["nll"] for f in fits.values()) + 2 * n_params
+            for k, n_params in (("gaussian", 6), ("student", 9), ("shared", 7))
+        },
+        "chosen": chosen,
+        "model": repr(models[chosen]),
         "coverage": cov,
+        "coverage_range": {q: bootstrap_range(ev[q], models[chosen], q) for q in QUANTITIES},
         "eval_coverage_frames": {q: int(ev[q].err.size) for q in QUANTITIES},
         "acceptance": {"met": not misses, "misses": misses},
         "seconds": time.perf_counter() - t0,
@@ -378,10 +453,10 @@ def main(argv: list[str] | None = None) -> int:
     }
     runs.write_json(args.out_dir / f"{NAME}.json", data)
     (args.out_dir / f"{NAME}.md").write_text(_md(data), encoding="utf-8")
-    _figure(args.out_dir / f"{NAME}.png", ev, models)
+    _figure(args.out_dir / f"{NAME}.png", ev, models, chosen)
     print(_md(data))
     if args.update_source:
-        update_source(student)
+        update_source(models[chosen])
     return 0
 
 

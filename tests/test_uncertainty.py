@@ -40,7 +40,12 @@ def test_student_t_multiplier_matches_scipy(dof: float) -> None:
 
 def test_model_multiplier_and_interval_per_quantity() -> None:
     m = UncertaintyModel(dof_sinkage=3.0, dof_theta1=math.inf, dof_theta2=12.0)
-    ref = [stats.t.ppf(0.975, 3.0), stats.norm.ppf(0.975), stats.t.ppf(0.975, 12.0)]
+    # In units of the reported sigma, the t's standard deviation (scipy's t.std).
+    ref = [
+        stats.t.ppf(0.975, 3.0) / stats.t.std(3.0),
+        stats.norm.ppf(0.975),
+        stats.t.ppf(0.975, 12.0) / stats.t.std(12.0),
+    ]
     np.testing.assert_allclose(np.asarray(m.multiplier(0.95)), ref, rtol=1e-4)
     low, high = m.interval(0.95, "theta2", np.asarray([20.0, 30.0]), np.asarray([0.5, 1.0]))
     np.testing.assert_allclose(np.asarray(low), [20.0 - 0.5 * ref[2], 30.0 - ref[2]], rtol=1e-5)
@@ -60,12 +65,28 @@ def test_each_quantity_has_its_own_scale_and_floor() -> None:
     cov = jnp.asarray(0.01 * a @ a.T + 1e-3 * np.eye(9))
     radius_mm = 140.0
     raw = np.asarray(measurement_std(p, cov, radius_mm, UncertaintyModel.raw()))
-    m = UncertaintyModel(1.5, 2.5, 3.5, 0.2, 0.1, 0.3)
+    m = UncertaintyModel(1.5, 2.5, 3.5, 0.2, 0.1, 0.3, math.inf, 4.0, 9.0)
     got = np.asarray(measurement_std(p, cov, radius_mm, m))
     floor = np.asarray([0.2 * radius_mm / 80.0, math.radians(0.1), math.radians(0.3)])
-    np.testing.assert_allclose(got, np.sqrt((np.asarray([1.5, 2.5, 3.5]) * raw) ** 2 + floor**2))
+    t_scale = np.sqrt((np.asarray([1.5, 2.5, 3.5]) * raw) ** 2 + floor**2)
+    # The reported sigma is the standard deviation of the t with that scale (scipy).
+    std = [1.0, stats.t.std(4.0), stats.t.std(9.0)]
+    np.testing.assert_allclose(got, t_scale * np.asarray(std), rtol=1e-5)
     # The public name is the same class; the fitted defaults are finite and positive.
     assert sj.UncertaintyModel is UncertaintyModel
     d = UncertaintyModel()
     assert np.all(np.asarray(d.scales()) > 0) and np.all(np.asarray(d.floors()) >= 0)
     assert np.all(np.asarray(d.dofs()) > 2)  # a finite variance
+
+
+@pytest.mark.parametrize("dof", [3.2, 4.0, 6.0, 20.0])
+def test_reported_sigma_keeps_1_96_close_to_95_percent(dof: float) -> None:
+    # The CSV's sigma is the t's standard deviation, so ±1.96 sigma holds about 95 % of a
+    # heavy-tailed error (scipy's t cdf), and the model's own 95 % multiplier is exact.
+    m = UncertaintyModel(dof_sinkage=dof, dof_theta1=dof, dof_theta2=dof)
+    sd = stats.t.std(dof)
+    assert 100 * (2 * stats.t.cdf(1.96 * sd, dof) - 1) == pytest.approx(95.0, abs=1.0)
+    k = float(m.multiplier(0.95, "theta1"))
+    assert 2 * stats.t.cdf(k * sd, dof) - 1 == pytest.approx(0.95, abs=1e-4)
+    # At 50 % the heavy-tailed interval is narrower than the Gaussian's 0.674 sigma.
+    assert float(m.multiplier(0.5, "sinkage")) < stats.norm.ppf(0.75)

@@ -4,10 +4,12 @@ Each residual group (rim, boundary + ends) gets its own noise level from its wei
 Neighbouring outline points are not independent (the mask is smoothed and the image blurred over a
 few pixels), so the covariance is inflated by a correlation length in points. What the fit cannot
 see (segmentation bias shared by a whole edge, JPEG, blur) is an error floor added in quadrature.
-The errors are heavier-tailed than a Gaussian (a frame's sigma is itself uncertain), so the
-reported one-sigma is the scale of a Student-t with ``dof_*`` degrees of freedom: an interval at
-level p is value ± :meth:`UncertaintyModel.multiplier` (p) · sigma (for a 95 % interval about
-2.3 sigma rather than 1.96). All constants, per quantity, are maximum-likelihood fits on synthetic
+The errors are heavier-tailed than a Gaussian (a frame's sigma is itself uncertain): error /
+sigma follows a Student-t with ``dof_*`` degrees of freedom. The reported one-sigma is that
+t's standard deviation, so value ± 1.96 sigma stays close to a 95 % interval (within a point for
+dof > 3); the interval at any level p is value ± :meth:`UncertaintyModel.multiplier` (p) · sigma
+(at 50 % about 0.5 sigma rather than 0.67: most errors are smaller than a Gaussian's, a few far
+larger). All constants, per quantity, are maximum-likelihood fits on synthetic
 recordings disjoint from the benchmark's (``experiments/uncertainty_calibration.py``).
 """
 
@@ -27,6 +29,7 @@ QUANTITIES = ("sinkage", "theta1", "theta2")  # the order of every per-quantity 
 # terms) is exact to 1e-7; below it the bisection is, in float32 too.
 _EXPANSION_DOF = 100.0
 _BISECTIONS = 100
+MIN_DOF = 2.5  # the fewest degrees of freedom a model may have: its t keeps a standard deviation
 
 
 def central_multiplier(level: ArrayLike, dof: ArrayLike = math.inf) -> Float[Array, "*shape"]:
@@ -75,11 +78,13 @@ class UncertaintyModel(eqx.Module):
     delta-method sigma (the correlation between neighbouring outline points, as a square-root
     correlation length); ``floor_*`` is added in quadrature (error that the residuals cannot see:
     a shared shift of a whole edge by blur, JPEG or segmentation); ``dof_*`` are the degrees of
-    freedom of the Student-t that error / sigma follows (``math.inf``: Gaussian). The reported
-    sigma (the ``*_std_*`` columns, docs/conventions.md §4) is the t's scale; the interval at
-    level p is value ± ``multiplier(p)`` · sigma, e.g. a 95 % interval for the sinkage::
+    freedom of the Student-t that error / sigma follows (``math.inf``: Gaussian; at least 2.5, so
+    that it has a standard deviation). ``scale_*`` and ``floor_*`` give the t's scale; the
+    reported sigma (the ``*_std_*`` columns, docs/conventions.md §4) is its standard deviation,
+    the scale times sqrt(dof / (dof - 2)). The interval at level p is value ± ``multiplier(p)`` ·
+    sigma, e.g. a 50 % interval for the sinkage::
 
-        k = float(UncertaintyModel().multiplier(0.95, "sinkage"))
+        k = float(UncertaintyModel().multiplier(0.5, "sinkage"))
         low, high = sinkage_mm - k * sinkage_std_mm, sinkage_mm + k * sinkage_std_mm
 
     The defaults are maximum-likelihood fits on synthetic recordings disjoint from the benchmark
@@ -87,20 +92,20 @@ class UncertaintyModel(eqx.Module):
     ``UncertaintyModel.raw()`` turns all of it off (scale 1, no floor, Gaussian).
     """
 
-    scale_sinkage: float = 1.6
-    scale_theta1: float = 2.57
-    scale_theta2: float = 2.57
-    floor_sinkage_px: float = 0.11
-    floor_theta1_deg: float = 0.07
-    floor_theta2_deg: float = 0.07
-    dof_sinkage: float = math.inf
-    dof_theta1: float = math.inf
-    dof_theta2: float = math.inf
+    scale_sinkage: float = 1.283
+    scale_theta1: float = 1.891
+    scale_theta2: float = 1.967
+    floor_sinkage_px: float = 0.06
+    floor_theta1_deg: float = 0.0
+    floor_theta2_deg: float = 0.0
+    dof_sinkage: float = 3.47
+    dof_theta1: float = 3.47
+    dof_theta2: float = 3.47
 
     @staticmethod
     def raw() -> UncertaintyModel:
         """The delta-method sigma as it is: scale 1, no floor, Gaussian."""
-        return UncertaintyModel(1.0, 1.0, 1.0, 0.0, 0.0, 0.0)
+        return UncertaintyModel(1.0, 1.0, 1.0, 0.0, 0.0, 0.0, math.inf, math.inf, math.inf)
 
     def scales(self) -> Float[Array, " 3"]:
         """The sigma scales of z0, θ1, θ2."""
@@ -116,15 +121,23 @@ class UncertaintyModel(eqx.Module):
         """The Student-t degrees of freedom of z0, θ1, θ2 (inf: Gaussian)."""
         return jnp.stack([jnp.asarray(self.dof_sinkage), self.dof_theta1, self.dof_theta2])
 
+    def std_factors(self) -> Float[Array, " 3"]:
+        """Standard deviation over scale of each quantity's t: sqrt(dof / (dof - 2)); 1 for the
+        Gaussian. The degrees of freedom are held above 2.5 (a finite standard deviation)."""
+        nu = jnp.maximum(self.dofs(), MIN_DOF)
+        return jnp.where(jnp.isinf(nu), 1.0, jnp.sqrt(nu / jnp.where(jnp.isinf(nu), 1.0, nu - 2.0)))
+
     def multiplier(self, level: ArrayLike, quantity: str | None = None) -> Float[Array, "*q"]:
-        """How many sigmas each side of the value the central interval at ``level`` (e.g. 0.95)
-        spans: for ``quantity`` ("sinkage", "theta1" or "theta2") a scalar, else z0, θ1, θ2."""
-        dofs = self.dofs()
+        """How many (reported) sigmas each side of the value the central interval at ``level``
+        (e.g. 0.95) spans: for ``quantity`` ("sinkage", "theta1" or "theta2") a scalar, else z0,
+        θ1, θ2."""
+        dofs, factors = jnp.maximum(self.dofs(), MIN_DOF), self.std_factors()
         if quantity is not None:
             if quantity not in QUANTITIES:
                 raise ValueError(f"quantity must be one of {QUANTITIES}, got {quantity!r}")
-            dofs = dofs[QUANTITIES.index(quantity)]
-        return central_multiplier(level, dofs)
+            i = QUANTITIES.index(quantity)
+            dofs, factors = dofs[i], factors[i]
+        return central_multiplier(level, dofs) / factors
 
     def interval(
         self, level: float, quantity: str, value: ArrayLike, std: ArrayLike
@@ -178,9 +191,9 @@ def measurement_std(
     g = jax.jacfwd(measurements)(p, wheel_radius_mm)
     var = jnp.maximum(jnp.einsum("ij,jk,ik->i", g, cov, g), 0.0)
     mm_per_px = 1.0 if wheel_radius_mm is None else wheel_radius_mm / jnp.maximum(p[2], 1.0)
-    scale = m.scales().astype(p.dtype)
+    scale = (m.scales() * m.std_factors()).astype(p.dtype)
     one = jnp.ones((), p.dtype)
     floor = m.floors().astype(p.dtype) * jnp.stack(
         [mm_per_px * one, jnp.radians(one), jnp.radians(one)]
     )
-    return jnp.sqrt(scale**2 * var + floor**2)
+    return jnp.sqrt(scale**2 * var + (floor * m.std_factors().astype(p.dtype)) ** 2)
