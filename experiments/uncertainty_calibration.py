@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from benchmark import SIZES, make_frames
 from common import report, runs
-from scipy import optimize, special
+from scipy import optimize, special, stats
 
 import sinkjax as sj
 from sinkjax import metrics as sm
@@ -59,6 +59,7 @@ FITS = {  # the fits compared: key in the JSON -> name in the report
     "gaussian": "Gaussian",
     "student": "Student-t, ν per quantity",
     "shared": "Student-t, one ν",
+    "quantile": "Student-t, quantiles matched",
 }
 FLOOR_UNIT = {"sinkage": "px", "theta1": "deg", "theta2": "deg"}
 
@@ -169,6 +170,33 @@ def fit(d: Data, dof: float | None) -> dict:
     }
 
 
+def fit_quantiles(d: Data, start: dict) -> dict:
+    """Scale, floor and ν chosen so that the t's central intervals hold their nominal share of
+    the errors at every level of ``LEVELS`` (the logs of the empirical quantiles of |error| /
+    sigma against the t's, least squares), from the maximum-likelihood fit ``start``. Maximum
+    likelihood weighs the far tail most; this weighs the levels a user reads intervals at."""
+    levels = np.asarray(LEVELS)
+
+    def objective(x: np.ndarray) -> float:
+        scale, floor, dof = np.exp(x)
+        z = np.abs(d.err) / np.maximum(d.sigma(scale, floor), 1e-12)
+        got = np.quantile(z, levels)
+        want = stats.t.ppf(0.5 + levels / 2, dof)
+        return float(np.sum((np.log(np.maximum(got, 1e-12)) - np.log(want)) ** 2))
+
+    x0 = np.log([start["scale"], max(start["floor"], 1e-3), start["dof"]])
+    r = optimize.minimize(
+        objective,
+        x0,
+        method="Nelder-Mead",
+        bounds=[(-5, 5), (-9, 3), (math.log(MIN_DOF), math.log(1e3))],
+        options={"xatol": 1e-4, "fatol": 1e-8, "maxiter": 4000},
+    )
+    scale, floor, dof = (float(v) for v in np.exp(r.x))
+    n = nll(d, scale, floor, dof)
+    return {"scale": scale, "floor": floor, "dof": dof, "nll": n, "aic": 6 + 2 * n}
+
+
 SHARED_DOF_GRID = (*np.geomspace(MIN_DOF, 100.0, 41).tolist(), math.inf)
 
 
@@ -206,6 +234,16 @@ def coverage(d: Data, model: UncertaintyModel, q: str, levels: tuple[float, ...]
     """Empirical coverage (%) of value ± multiplier(p) sigma at each level p."""
     sigma = reported_sigma(d, model, q)
     ks = np.asarray(model.multiplier(np.asarray(levels), q))
+    return [100 * float(np.mean(np.abs(d.err) <= k * sigma)) for k in ks]
+
+
+def coverage_gaussian_k(
+    d: Data, model: UncertaintyModel, q: str, levels: tuple[float, ...]
+) -> list[float]:
+    """Coverage (%) of value ± z_p sigma (the Gaussian's multipliers on the reported sigma): what
+    a user who takes sigma as Gaussian gets, e.g. ±1.96 sigma at 95 %."""
+    sigma = reported_sigma(d, model, q)
+    ks = stats.norm.ppf(0.5 + np.asarray(levels) / 2)
     return [100 * float(np.mean(np.abs(d.err) <= k * sigma)) for k in ks]
 
 
@@ -257,7 +295,7 @@ def _figure(
     path: Path, ev: dict[str, Data], models: dict[str, UncertaintyModel], chosen: str
 ) -> None:
     fig, axes = report.figure(2, 3, (15.0, 9.0))
-    styles = dict(zip(models, (":", "--", "-.", "-"), strict=True))
+    styles = dict(zip(models, (":", "--", "-.", (0, (1, 1)), "-"), strict=True))
     for j, q in enumerate(QUANTITIES):
         ax = axes[0, j]
         p = np.asarray(CURVE)
@@ -265,7 +303,7 @@ def _figure(
         ax.plot([0, 100], [0, 100], "k-", lw=0.8)
         for name, model in models.items():
             cov = coverage(ev[q], model, q, CURVE)
-            line = ax.plot(100 * p, cov, styles[name], lw=1.6, label=name)[0]
+            line = ax.plot(100 * p, cov, linestyle=styles[name], lw=1.6, label=name)[0]
             ax.plot(
                 [100 * x for x in LEVELS],
                 coverage(ev[q], model, q, LEVELS),
@@ -360,6 +398,16 @@ def _md(data: dict) -> str:
         f"{', '.join(f'{100 * p:g} %' for p in ACCEPT)} for z0, θ1 and θ2): "
         + ("**met**." if verdict["met"] else "**not met**: " + "; ".join(verdict["misses"]) + ".")
     )
+    lines.append(
+        "Multipliers k of the reported σ for the interval value ± k σ at each level (the model "
+        "written as the defaults; `UncertaintyModel().multiplier(p, q)`):"
+    )
+    lines.append(
+        report.md_table(
+            ["quantity"] + [f"{100 * p:g} %" for p in LEVELS],
+            [[LABELS[q]] + [fmt(k, 2) for k in ks] for q, ks in data["multipliers"].items()],
+        )
+    )
     lines.append(f"![reliability diagrams]({NAME}.png)")
     return "\n\n".join(lines) + "\n"
 
@@ -380,7 +428,10 @@ def main(argv: list[str] | None = None) -> int:
         help="take the seeds already in the saved frames CSV from it (measure only the others)",
     )
     ap.add_argument(
-        "--dof", choices=("shared", "student"), default="shared", help="which fit is the model"
+        "--dof",
+        choices=("shared", "student", "quantile"),
+        default="quantile",
+        help="which fit is the model",
     )
     ap.add_argument("--update-source", action="store_true", help="rewrite the defaults")
     ap.add_argument("--out-dir", type=Path, default=RESULTS)
@@ -412,13 +463,19 @@ def main(argv: list[str] | None = None) -> int:
     for q in QUANTITIES:
         g = fit(tr[q], math.inf)
         z = tr[q].err / tr[q].sigma(g["scale"], g["floor"])
-        fits[q] = {"frames": int(tr[q].err.size), "gaussian": g, "student": fit(tr[q], None)}
+        student = fit(tr[q], None)
+        fits[q] = {"frames": int(tr[q].err.size), "gaussian": g, "student": student}
+        fits[q]["quantile"] = fit_quantiles(tr[q], student)
         fits[q] |= {"shared": shared[q], "kurtosis": excess_kurtosis(z)}
     models = {"current defaults": UncertaintyModel()}
     for key, name in FITS.items():
         models[name] = model_from({q: f[key] for q, f in fits.items()})
     chosen = FITS[args.dof]
     cov = {q: {n: coverage(ev[q], m, q, LEVELS) for n, m in models.items()} for q in QUANTITIES}
+    for q in QUANTITIES:
+        cov[q][f"{chosen}, Gaussian multipliers"] = coverage_gaussian_k(
+            ev[q], models[chosen], q, LEVELS
+        )
     misses = [
         f"{q} {100 * p:g} %: {c:.1f}"
         for q in QUANTITIES
@@ -440,11 +497,14 @@ def main(argv: list[str] | None = None) -> int:
         },
         "aic": {
             k: 2 * sum(f[k]["nll"] for f in fits.values()) + 2 * n_params
-            for k, n_params in (("gaussian", 6), ("student", 9), ("shared", 7))
+            for k, n_params in (("gaussian", 6), ("student", 9), ("shared", 7), ("quantile", 9))
         },
         "chosen": chosen,
         "model": repr(models[chosen]),
         "coverage": cov,
+        "multipliers": {
+            q: [float(models[chosen].multiplier(p, q)) for p in LEVELS] for q in QUANTITIES
+        },
         "coverage_range": {q: bootstrap_range(ev[q], models[chosen], q) for q in QUANTITIES},
         "eval_coverage_frames": {q: int(ev[q].err.size) for q in QUANTITIES},
         "acceptance": {"met": not misses, "misses": misses},
