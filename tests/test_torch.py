@@ -19,7 +19,7 @@ from sinkjax import SegmentationParams  # noqa: E402
 from sinkjax.rig import rect_problem  # noqa: E402
 from sinkjax.soft.colour import rgb_to_hsi as jax_rgb_to_hsi  # noqa: E402
 from sinkjax.soft.estimator import measure  # noqa: E402
-from sinkjax.soft.segmentation import smooth, soft_open, wheel_mask  # noqa: E402
+from sinkjax.soft.segmentation import paper_mask, smooth, soft_open  # noqa: E402
 from sinkjax.synth import recording_scenes, render, rig_for  # noqa: E402
 from sinkjax.torch.bridge import _to_jax, _to_torch  # noqa: E402
 from sinkjax.torch.jax_bridge import (  # noqa: E402
@@ -105,7 +105,7 @@ def test_soft_hsi_mask_matches_jax(frames, params) -> None:
     imgs, rig = frames
     got = st.soft_hsi_mask(_chw(imgs), params, rig.confidence_rect)
     assert got.shape == (2, 1, SIZE, SIZE) and got.dtype == torch.float64
-    ref = np.stack([wheel_mask(jnp.asarray(im), params, rig.confidence_rect) for im in imgs])
+    ref = np.stack([paper_mask(jnp.asarray(im), params, rig.confidence_rect) for im in imgs])
     assert np.abs(got[:, 0].numpy() - ref).max() <= 1e-5
     # Both sides are float64: the agreement is round-off, far inside the 1e-5 acceptance.
     assert np.abs(got[:, 0].numpy() - ref).max() <= 1e-9
@@ -128,7 +128,7 @@ def test_segmenter_module_parameters_and_gradients(frames) -> None:
     def jax_stat(v):
         p = SegmentationParams(**{n: v[i] for i, n in enumerate(st.SEG_FIELDS)})
         return jnp.mean(
-            jnp.stack([wheel_mask(jnp.asarray(im), p, rig.confidence_rect) for im in imgs])
+            jnp.stack([paper_mask(jnp.asarray(im), p, rig.confidence_rect) for im in imgs])
         )
 
     v0 = jnp.asarray([_odd_params().as_dict()[n] for n in st.SEG_FIELDS])
