@@ -38,8 +38,11 @@ UNCERTAINTY = UncertaintyModel()  # a 95 % interval: value ± .multiplier(0.95, 
 WRONG_PCT = 10.0
 
 
-def run(seed: int, n_rec: int, n_frames: int, width: int, height: int) -> list[dict]:
-    """One row per frame: preset, recording, truth and both methods' results."""
+def run(
+    seed: int, n_rec: int, n_frames: int, width: int, height: int, classic: bool = True
+) -> list[dict]:
+    """One row per frame: preset, recording, truth and both methods' results (``classic``
+    False: the soft method only, its results repeated in the classic columns)."""
     rng = np.random.default_rng(seed)
     rows: list[dict] = []
     for preset in HARD_PRESETS:
@@ -50,30 +53,44 @@ def run(seed: int, n_rec: int, n_frames: int, width: int, height: int) -> list[d
             rendered = [S.render(s, seed=frame_seed(key, i)) for i, s in enumerate(scenes)]
             names = [f"{preset}_{rec}_{i:02d}" for i in range(n_frames)]
             soft = estimate_batch([im for im, _ in rendered], rig, names)
-            classic = [
+            if not classic:
+                rows += _rows(preset, rec, scenes, rendered, soft, soft)
+                continue
+            classic_out = [
                 estimate_classic(im, rig, n) for (im, _), n in zip(rendered, names, strict=True)
             ]
-            r_rec = recording_radius_px(classic)
+            r_rec = recording_radius_px(classic_out)
             if r_rec is not None:  # the second look, with the recording's rim radius
-                classic = [
+                classic_out = [
                     estimate_classic(im, rig, n, recording_radius_px=r_rec)
                     if c.status == Status.OK
                     else c
-                    for (im, _), n, c in zip(rendered, names, classic, strict=True)
+                    for (im, _), n, c in zip(rendered, names, classic_out, strict=True)
                 ]
-            for i, ((_, t), s, c) in enumerate(zip(rendered, soft, classic, strict=True)):
-                rows.append(
-                    {
-                        "preset": preset,
-                        "recording": rec,
-                        "frame": i,
-                        "terrain": scenes[i].terrain,
-                        "truth": [t.sinkage_mm, t.theta1_deg, t.theta2_deg],
-                        "soft": _row(s),
-                        "classic": _row(c),
-                    }
-                )
+            rows += _rows(preset, rec, scenes, rendered, soft, classic_out)
     return rows
+
+
+def _rows(
+    preset: str,
+    rec: int,
+    scenes: list,
+    rendered: list,
+    soft: list[FrameResult],
+    classic: list[FrameResult],
+) -> list[dict]:
+    return [
+        {
+            "preset": preset,
+            "recording": rec,
+            "frame": i,
+            "terrain": scenes[i].terrain,
+            "truth": [t.sinkage_mm, t.theta1_deg, t.theta2_deg],
+            "soft": _row(s),
+            "classic": _row(c),
+        }
+        for i, ((_, t), s, c) in enumerate(zip(rendered, soft, classic, strict=True))
+    ]
 
 
 def _row(r: FrameResult) -> dict:
@@ -162,10 +179,13 @@ def main() -> None:
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--quick", action="store_true", help="1 recording x 4 frames per preset")
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument(
+        "--soft-only", action="store_true", help="skip the classic method (while developing)"
+    )
     a = p.parse_args()
     n_rec, n_frames = (1, 4) if a.quick else (a.recordings, a.frames)
     t0 = time.time()
-    rows = run(a.seed, n_rec, n_frames, a.width, a.height)
+    rows = run(a.seed, n_rec, n_frames, a.width, a.height, classic=not a.soft_only)
     cfg = dict(
         seed=a.seed,
         recordings=n_rec,

@@ -12,8 +12,15 @@ import pytest
 
 from sinkjax.classic.estimator import hard_mask, rgb_to_hsi_np
 from sinkjax.rig import SegmentationParams
-from sinkjax.soft.colour import circular_mean_deg, rgb_to_hsi
-from sinkjax.soft.segmentation import confidence_means, smooth, soft_mask, soft_open
+from sinkjax.soft.colour import chromaticity, circular_mean_deg, rgb_to_hsi
+from sinkjax.soft.segmentation import (
+    confidence_means,
+    paper_mask,
+    smooth,
+    soft_mask,
+    soft_open,
+    wheel_mask,
+)
 
 
 def test_hsi_matches_textbook_and_classic(hsi_reference) -> None:
@@ -131,3 +138,63 @@ def test_smoothing_and_opening() -> None:
     opened = np.asarray(soft_open(spur, 1))
     assert opened[4].max() == 0.0  # a one-pixel line is removed
     assert opened[1, 1] == 1.0  # a 3x3 block survives
+
+
+def test_chromaticity_is_the_hsi_hue_and_blind_to_brightness() -> None:
+    rng = np.random.default_rng(11)
+    px = rng.uniform(0.05, 1.0, size=(200, 3))
+    q = np.asarray(chromaticity(jnp.asarray(px)))
+    h, _, _ = rgb_to_hsi(jnp.asarray(px))
+    np.testing.assert_allclose(
+        np.degrees(np.arctan2(q[:, 1], q[:, 0])) % 360.0, np.asarray(h), atol=1e-7
+    )
+    np.testing.assert_allclose(np.asarray(chromaticity(jnp.asarray(0.3 * px))), q, atol=1e-12)
+    g = jax.grad(lambda x: jnp.sum(chromaticity(x)))(jnp.zeros((2, 3)))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def _cast_scene() -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray]:
+    # A wall tinted towards the wheel's hue (inside the paper's band), a wheel disc, soil below.
+    rng = np.random.default_rng(5)
+    img = np.empty((60, 80, 3))
+    img[:] = (0.4, 0.62, 0.47)  # greenish wall, saturation about half the wheel's
+    img[45:] = (0.55, 0.45, 0.35)  # soil
+    yy, xx = np.mgrid[:60, :80]
+    wheel = (yy - 30) ** 2 + (xx - 40) ** 2 < 14**2
+    img[wheel] = (0.25, 0.7, 0.35)
+    img = np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1)
+    return img, (34, 20, 12, 5), wheel
+
+
+def test_reference_veto_removes_a_cast_wall_and_keeps_the_wheel() -> None:
+    img, rect, _ = _cast_scene()
+    seg = SegmentationParams(p_d_sat=0.3)
+    band = np.asarray(paper_mask(jnp.asarray(img), seg, rect))
+    mask = np.asarray(wheel_mask(jnp.asarray(img), seg, rect))
+    # Away from the wheel's edge (3 px), whose blurred pixels are mixtures.
+    far = np.hypot(*np.mgrid[-30:30, -40:40]) > 17
+    wall, soil = far.copy(), far.copy()
+    wall[42:], soil[:48] = False, False
+    assert band[wall].mean() > 0.8  # the paper's band takes the tinted wall for wheel
+    assert mask[wall].max() < 0.05 and mask[soil].max() < 0.05
+    inner = np.hypot(*np.mgrid[-30:30, -40:40]) < 12
+    assert mask[inner].min() > 0.95
+    traced = wheel_mask(jnp.asarray(img), seg, jnp.asarray(rect, jnp.int32))
+    np.testing.assert_allclose(np.asarray(traced), mask, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(wheel_mask(jnp.asarray(img), seg, rect, reference=False)), band, atol=0
+    )
+
+
+def test_wheel_mask_gradients_finite_jit_and_vmap() -> None:
+    img, rect, _ = _cast_scene()
+    imgs = jnp.stack([jnp.asarray(img), jnp.asarray(img[:, ::-1])])
+    r = jnp.asarray(rect, jnp.int32)
+
+    def total(seg: SegmentationParams, x: jnp.ndarray) -> jnp.ndarray:
+        return jnp.sum(jax.vmap(wheel_mask, in_axes=(0, None, None))(x, seg, r))
+
+    gs, gx = jax.jit(jax.grad(total, argnums=(0, 1)))(SegmentationParams(p_d_sat=0.3), imgs)
+    leaves = jax.tree_util.tree_leaves(gs)
+    assert all(np.isfinite(float(v)) for v in leaves) and abs(float(gs.p_a_hue)) > 0
+    assert np.all(np.isfinite(np.asarray(gx)))

@@ -18,8 +18,8 @@ import sinkjax.torch as st  # noqa: E402
 from sinkjax import SegmentationParams  # noqa: E402
 from sinkjax.rig import rect_problem  # noqa: E402
 from sinkjax.soft.colour import rgb_to_hsi as jax_rgb_to_hsi  # noqa: E402
-from sinkjax.soft.estimator import measure  # noqa: E402
-from sinkjax.soft.segmentation import smooth, soft_open, wheel_mask  # noqa: E402
+from sinkjax.soft.estimator import measure_from_mask as jax_measure_from_mask  # noqa: E402
+from sinkjax.soft.segmentation import paper_mask, smooth, soft_open  # noqa: E402
 from sinkjax.synth import recording_scenes, render, rig_for  # noqa: E402
 from sinkjax.torch.bridge import _to_jax, _to_torch  # noqa: E402
 from sinkjax.torch.jax_bridge import (  # noqa: E402
@@ -105,7 +105,7 @@ def test_soft_hsi_mask_matches_jax(frames, params) -> None:
     imgs, rig = frames
     got = st.soft_hsi_mask(_chw(imgs), params, rig.confidence_rect)
     assert got.shape == (2, 1, SIZE, SIZE) and got.dtype == torch.float64
-    ref = np.stack([wheel_mask(jnp.asarray(im), params, rig.confidence_rect) for im in imgs])
+    ref = np.stack([paper_mask(jnp.asarray(im), params, rig.confidence_rect) for im in imgs])
     assert np.abs(got[:, 0].numpy() - ref).max() <= 1e-5
     # Both sides are float64: the agreement is round-off, far inside the 1e-5 acceptance.
     assert np.abs(got[:, 0].numpy() - ref).max() <= 1e-9
@@ -128,7 +128,7 @@ def test_segmenter_module_parameters_and_gradients(frames) -> None:
     def jax_stat(v):
         p = SegmentationParams(**{n: v[i] for i, n in enumerate(st.SEG_FIELDS)})
         return jnp.mean(
-            jnp.stack([wheel_mask(jnp.asarray(im), p, rig.confidence_rect) for im in imgs])
+            jnp.stack([paper_mask(jnp.asarray(im), p, rig.confidence_rect) for im in imgs])
         )
 
     v0 = jnp.asarray([_odd_params().as_dict()[n] for n in st.SEG_FIELDS])
@@ -270,10 +270,16 @@ def test_measure_from_mask_shape_errors() -> None:
 
 @pytest.fixture(scope="module")
 def reference(frames) -> np.ndarray:
-    """JAX's own soft estimate of both frames, (2, 6): z0 mm, angles deg, and their sigmas."""
+    """JAX's own soft estimate of both frames from the paper's band (the torch segmenter's
+    mask), (2, 6): z0 mm, angles deg, and their sigmas."""
     imgs, rig = frames
-    kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
-    fn = jax.jit(jax.vmap(lambda im: estimate_values(measure(im, rig.segmentation, **kw))))
+    kw = dict(travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
+
+    def one(im):
+        mask = paper_mask(im, rig.segmentation, rig.confidence_rect)
+        return estimate_values(jax_measure_from_mask(im, mask, **kw))
+
+    fn = jax.jit(jax.vmap(one))
     return np.asarray(fn(jnp.asarray(imgs)))
 
 
@@ -281,8 +287,8 @@ def reference(frames) -> np.ndarray:
 def test_bridge_from_mask(frames, reference) -> None:
     """One compiled bridge (images and masks, batch 2), several checks; compiling dominates.
 
-    - torch segmenter + bridge give JAX's ``measure`` numbers (so ``measure_from_mask`` mirrors
-      ``measure``, and the torch masks are JAX's);
+    - torch segmenter + bridge give JAX's numbers on the paper's band (``measure_from_mask`` of
+      ``paper_mask``: the torch masks are JAX's);
     - gradients are finite and reach the image and the six thresholds;
     - ``torch.autograd.gradcheck`` of (image, mask) -> (z0, theta1, theta2, sigmas), float64,
       along a random direction (fast mode: the full Jacobian would take 2 x 73728 solves);

@@ -53,3 +53,18 @@ def circular_mean_deg(
 def wrap_deg(angle_deg: Float[Array, "*n"]) -> Float[Array, "*n"]:
     """Angle difference wrapped to [-180, 180)."""
     return jnp.mod(angle_deg + 180.0, 360.0) - 180.0
+
+
+def chromaticity(rgb: Float[Array, "*hw 3"]) -> Float[Array, "*hw 2"]:
+    """The chromaticity vector (2R - G - B, sqrt(3) (G - B)) / (R + G + B): HSI's hue as its
+    direction, a saturation as its length (zero on the grey axis).
+
+    A brightness factor (shading, exposure, a shadow) cancels; unlike (H, S) it is linear near
+    grey, so a noisy dark pixel lands near the origin instead of at a random hue. Black pixels
+    get (0, 0) with zero (not NaN) gradients.
+    """
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    total = r + g + b
+    dark = total <= _EPS
+    inv = jnp.where(dark, 0.0, 1.0 / jnp.where(dark, 1.0, total))
+    return jnp.stack([(2.0 * r - g - b) * inv, jnp.sqrt(3.0) * (g - b) * inv], axis=-1)

@@ -3,6 +3,9 @@
 The hard test H_d <= H <= H_a and S_d <= S <= S_a becomes a product of sigmoids whose widths are
 the temperatures in :class:`~sinkjax.SegmentationParams`; as they go to zero the mask becomes the
 classic binary mask. Hue is compared circularly around the wheel's mean hue H_w.
+:func:`wheel_mask` then vetoes the pixels whose chromaticity is clearly the soil's or the
+background's (issue 12: a colour cast that tints the wall towards the wheel's hue passes the
+paper's band).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..rig import HUE_SCALE_DEG, SegmentationParams, rect_problem
-from .colour import circular_mean_deg, rgb_to_hsi, wrap_deg
+from .colour import chromaticity, circular_mean_deg, rgb_to_hsi, wrap_deg
 
 # The confidence rectangle (x, y, w, h) in px: static ints, or a traced array (see below).
 Rect = tuple[int, int, int, int] | Int[Array, " 4"]
@@ -73,13 +76,88 @@ def soft_mask(
     return m_h * m_s
 
 
-def wheel_mask(
+def paper_mask(
     image: Float[Array, "H W 3"], seg: SegmentationParams, rect: Rect
 ) -> Float[Array, "H W"]:
-    """Image in [0, 1] -> soft wheel mask, the paper's steps (2)-(3) made differentiable."""
+    """Image in [0, 1] -> the paper's steps (2)-(3) made differentiable: the H/S band alone."""
     h, s, _ = rgb_to_hsi(image)
     h_w, s_w = confidence_means(h, s, rect)
     return soft_mask(h, s, h_w, s_w, seg)
+
+
+def wheel_mask(
+    image: Float[Array, "H W 3"], seg: SegmentationParams, rect: Rect, *, reference: bool = True
+) -> Float[Array, "H W"]:
+    """Image in [0, 1] -> soft wheel mask: the paper's H/S band (:func:`paper_mask`) with the
+    pixels that are clearly soil or background vetoed (:func:`reference_mask`).
+
+    ``reference`` False: the paper's band alone. The band still sets the edges on ordinary
+    footage (the veto only removes pixels much nearer another reference than the wheel's); the
+    veto is what removes a background that a colour cast has made wheel-coloured.
+    """
+    mask = paper_mask(image, seg, rect)
+    return mask * reference_mask(image, rect) if reference else mask
+
+
+# Rows at the top and bottom of the image (fraction of its height) whose median colours are the
+# background's and the soil's: a side view has the wall above the wheel and the soil below it,
+# across the whole width (a wheel reaching into a strip covers far less than half of it).
+EDGE_ROWS_FRACTION = 0.03
+# A pixel is vetoed when it lies nearer the other reference by this fraction of the references'
+# separation: a blurred edge then stays with the band, which locates it to sub-pixel precision.
+VETO_FRACTION = 0.25
+
+
+def _median_spread(q: Float[Array, "N 2"]) -> tuple[Float[Array, " 2"], Float[Array, ""]]:
+    # Per-component median, and the MAD as a normal-equivalent spread (NaN entries ignored).
+    med = jnp.nanmedian(q, axis=0)
+    mad = jnp.nanmedian(jnp.abs(q - med[None, :]), axis=0)
+    return med, 1.4826 * jnp.sqrt(jnp.sum(mad * mad) + 1e-12)
+
+
+def _rect_values(q: Float[Array, "H W 2"], rect: Rect) -> Float[Array, "N 2"]:
+    # The rectangle's pixels: sliced when static, else the whole image with NaN outside.
+    height, width = q.shape[:2]
+    if isinstance(rect, tuple | list):
+        x, y, w, h = rect
+        return q[y : y + h, x : x + w].reshape(-1, 2)
+    x0, y0, w0, h0 = (rect[i] for i in range(4))
+    rows = jnp.arange(height, dtype=rect.dtype)
+    cols = jnp.arange(width, dtype=rect.dtype)
+    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
+    return jnp.where(inside[..., None], q, jnp.nan).reshape(-1, 2)
+
+
+def reference_mask(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
+    """Soft veto in [0, 1]: 0 where a pixel's chromaticity is clearly nearer the soil's or the
+    background's than the wheel's.
+
+    References are medians (robust to speculars, lugs and pebbles) of the chromaticity
+    (:func:`~sinkjax.soft.colour.chromaticity`, blind to shading and exposure): the wheel's over
+    the confidence rectangle, the background's over the image's top rows, the soil's over its
+    bottom rows. Each pixel is compared with the perpendicular bisector of wheel and reference
+    (the nearest-mean rule), so the soil's own colour, not a band around the wheel's, decides.
+    A reference closer to the wheel's than the wheel's own spread (MAD) is the wheel itself (a
+    strip the wheel fills) and vetoes nothing.
+    """
+    height = image.shape[0]
+    # Sensor noise in the dark would scatter single pixels across the bisector: decide on
+    # colours averaged over ~1 px (the veto need not be sharp, the band sets the edge).
+    blurred = jnp.stack([smooth(image[..., c]) for c in range(3)], axis=-1)
+    q = chromaticity(blurred)
+    n = max(2, round(EDGE_ROWS_FRACTION * height))
+    mu_w, sd_w = _median_spread(_rect_values(q, rect))
+    d_w = jnp.sum((q - mu_w[None, None, :]) ** 2, axis=-1)
+    out = jnp.ones(image.shape[:2], image.dtype)
+    for strip in (q[:n], q[-n:]):
+        mu_c, _ = _median_spread(strip.reshape(-1, 2))
+        sep = jnp.sqrt(jnp.sum((mu_c - mu_w) ** 2) + 1e-12)
+        d_c = jnp.sum((q - mu_c[None, None, :]) ** 2, axis=-1)
+        margin = (d_c - d_w) / (2.0 * sep)
+        m_c = jax.nn.sigmoid((margin + VETO_FRACTION * sep) / (0.05 * sep + 1e-3))
+        gate = jax.nn.sigmoid((sep - 1.0 * sd_w) / (0.25 * sd_w + 1e-3))
+        out = out * (1.0 - gate * (1.0 - m_c))
+    return out
 
 
 def _blur_axis(a: Float[Array, "H W"], axis: int) -> Float[Array, "H W"]:

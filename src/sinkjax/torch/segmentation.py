@@ -158,7 +158,7 @@ def soft_hsi_mask(
 ) -> Tensor:
     """Soft wheel mask of RGB images: the paper's H/S band test as a product of four sigmoids.
 
-    Equal to :func:`sinkjax.soft.segmentation.wheel_mask` per image: the band is centred on the
+    Equal to :func:`sinkjax.soft.segmentation.paper_mask` per image: the band is centred on the
     circular mean hue H_w and the mean saturation S_w of the confidence rectangle ``rect`` =
     (x, y, w, h) px; hue limits are H_w + (P - 1) 180 deg, saturation limits P S_w; the
     temperatures set the sigmoid widths.
