@@ -63,6 +63,10 @@ from .soft.segmentation import (
     soft_mask as soft_mask,
     wheel_mask as wheel_mask,
 )
+from .soft.segmenter import (
+    Segmenter as Segmenter,
+    ThresholdSegmenter as ThresholdSegmenter,
+)
 from .soft.settings import SoftSettings as SoftSettings
 from .soft.uncertainty import UncertaintyModel as UncertaintyModel
 from .status import Status as Status
