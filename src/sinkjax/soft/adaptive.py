@@ -26,7 +26,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ..rig import MIN_WHEEL_CHROMA, SegmentationParams, rect_problem
 from .colour import rgb_to_hsi
@@ -37,41 +37,40 @@ _SQRT3_2 = 0.8660254037844386
 _TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
 
 
-def _as_leaf(x: float) -> Array:
-    return jnp.asarray(x)
-
-
-def rect_weight(rect: Rect, height: int, width: int, dtype: jnp.dtype) -> Float[Array, "H W"]:
+def rect_weight(
+    rect: Rect, height: int, width: int, dtype: jnp.dtype | type
+) -> Float[Array, "H W"]:
     """1 inside the confidence rectangle (x, y, w, h), 0 outside; a tuple is checked (raises
     ValueError if it does not lie inside the image), an int array of 4 may be traced."""
     if isinstance(rect, tuple | list):
         problem = rect_problem(tuple(rect), height, width)
         if problem is not None:
             raise ValueError(problem)
-    x0, y0, w0, h0 = (jnp.asarray(rect[i]) for i in range(4))
-    rows = jnp.arange(height)
-    cols = jnp.arange(width)
+    x0, y0, w0, h0 = (jnp.asarray(rect[i], jnp.int32) for i in range(4))
+    rows = jnp.arange(height, dtype=jnp.int32)
+    cols = jnp.arange(width, dtype=jnp.int32)
     inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
     return inside.astype(dtype)
 
 
-def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "H W"]:
-    # Mean over the size x size window whose top-left corner is the pixel (edge-replicated).
-    p = jnp.pad(a, ((0, size - 1), (0, size - 1)), mode="edge")
-    s = jax.lax.reduce_window(p, 0.0, jax.lax.add, (size, size), (1, 1), "VALID")
+def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
+    # Mean over every size x size window lying inside ``a`` (index = the window's top-left).
+    s = jax.lax.reduce_window(a, 0.0, jax.lax.add, (size, size), (1, 1), "VALID")
     return s / float(size * size)
 
 
 def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float[Array, "H W"]:
     """Local intensity spread (std), the smallest over the four size x size windows that have
-    the pixel at a corner: a pixel next to an edge keeps the spread of its own side."""
-    mean = _box_mean(intensity, size)
-    var = jnp.maximum(_box_mean(intensity * intensity, size) - mean * mean, 0.0)
+    the pixel at a corner (the image edge-replicated): a pixel next to an edge keeps the spread
+    of its own side."""
     k = size - 1
-    p = jnp.pad(var, k, mode="edge")
+    p = jnp.pad(intensity, k, mode="edge")
+    mean = _box_mean(p, size)
+    var = jnp.maximum(_box_mean(p * p, size) - mean * mean, 0.0)
     h, w = intensity.shape
-    # The window with the pixel at its bottom-right corner starts k rows and columns earlier.
-    corners = [p[k - dy : k - dy + h, k - dx : k - dx + w] for dy in (0, k) for dx in (0, k)]
+    # var[a, b] is the window whose top-left pixel is (a - k, b - k): the pixel's own windows
+    # start at offsets 0 (pixel bottom/right) and k (pixel top/left).
+    corners = [var[dy : dy + h, dx : dx + w] for dy in (0, k) for dx in (0, k)]
     v = jnp.min(jnp.stack(corners), axis=0)
     # Double where: sqrt has an infinite derivative at 0 (a flat window).
     pos = v > 1e-12
@@ -104,21 +103,21 @@ class AdaptiveSegmenter(Segmenter):
     """
 
     seg: SegmentationParams = SegmentationParams()
-    min_wheel_chroma: Float[Array, ""] = eqx.field(converter=_as_leaf, default=MIN_WHEEL_CHROMA)
-    p_a_int: Float[Array, ""] = eqx.field(converter=_as_leaf, default=1.6)
-    int_floor: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.03)
-    p_d_int: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.6)
-    t_int: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.08)
-    p_chroma: Float[Array, ""] = eqx.field(converter=_as_leaf, default=3.0)
-    chroma_floor: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.012)
-    t_chroma: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.008)
-    p_tex: Float[Array, ""] = eqx.field(converter=_as_leaf, default=2.0)
-    tex_floor: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.006)
-    t_tex: Float[Array, ""] = eqx.field(converter=_as_leaf, default=0.002)
+    min_wheel_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=MIN_WHEEL_CHROMA)
+    p_a_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.6)
+    int_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.03)
+    p_d_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.6)
+    t_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.08)
+    p_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
+    chroma_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.012)
+    t_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.008)
+    p_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=2.0)
+    tex_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.006)
+    t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
 
-    def coloured(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, ""]:
+    def coloured(self, image: Float[Array, "H W 3"], rect: Rect) -> Bool[Array, ""]:
         """True (as a 0-d bool array) when the wheel has enough colour for the H/S test."""
-        weight = rect_weight(rect, *image.shape[:2], image.dtype)
+        weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
         return wheel_chroma(image, weight) >= self.min_wheel_chroma
 
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
@@ -128,7 +127,7 @@ class AdaptiveSegmenter(Segmenter):
 
     def grey_mask(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         """The intensity/chroma/texture mask alone (the branch for a wheel without colour)."""
-        weight = rect_weight(rect, *image.shape[:2], image.dtype)
+        weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
         total = jnp.maximum(jnp.sum(weight), 1.0)
 
         def rect_mean(a: Array) -> Array:

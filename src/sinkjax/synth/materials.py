@@ -4,7 +4,7 @@ Flight and test-bed wheels are often black or bare aluminium, which the paper's 
 test cannot see. Each set-up here starts from a ``full`` one (placement, holes, lamp, sensor,
 JPEG) and repaints it:
 
-- ``black_wheel``: a near-black wheel (value 0.04-0.12, a faint tint of any hue), grousered
+- ``black_wheel``: a near-black wheel (value 0.04-0.12, saturation under 0.05), grousered
   (always lugs), a weak broad sheen instead of sharp highlights, a mid-to-light wall;
 - ``metal_wheel``: bare aluminium (value 0.6-0.85, saturation under 0.05, a cool tint), strong
   specular highlights, a darker backdrop (a bright wheel against a bright grey wall shows no
@@ -68,7 +68,7 @@ def _paint(rng: np.random.Generator, black: bool) -> dict[str, object]:
     """Wheel, rim, lug, hub and hole colours, and the highlights, of a black or metal wheel."""
     u = rng.uniform
     if black:
-        hue, sat, val = u(0, 360), u(0.0, 0.1), u(0.04, 0.12)
+        hue, sat, val = u(0, 360), u(0.0, 0.05), u(0.04, 0.12)
         hub = _hsv(u(0, 360), u(0.0, 0.05), u(0.25, 0.45))  # a metal hub on a rubber wheel
         wall = _hsv(u(0, 360), u(0.02, 0.1), u(0.4, 0.8))
         n_spec, amp, size = int(rng.integers(0, 3)), (0.05, 0.2), (0.1, 0.25)
@@ -97,7 +97,8 @@ def repaint(rng: np.random.Generator, base: Scene, preset: str) -> Scene:
     r = base.radius_px
     scene = _with_lugs(rng, base)
     kw = _paint(rng, black=preset in ("black_wheel", "hard_black"))
-    n_spec, amp, size = kw.pop("_spec")  # type: ignore[misc]
+    spec_kind: tuple[int, tuple[float, float], tuple[float, float]] = kw.pop("_spec")  # type: ignore[assignment]
+    n_spec, amp, size = spec_kind
     spec = []
     for _ in range(n_spec):
         rr, aa = r * 0.9 * math.sqrt(u(0, 1)), u(0, 2 * math.pi)
