@@ -50,6 +50,7 @@ from .rig import (
     rig_to_toml as rig_to_toml,
     save_rig as save_rig,
 )
+from .soft.adaptive import AdaptiveSegmenter as AdaptiveSegmenter
 from .soft.batch import SoftRecording as SoftRecording, estimate_batch as estimate_batch
 from .soft.colour import circular_mean_deg as circular_mean_deg, rgb_to_hsi as rgb_to_hsi
 from .soft.estimator import (
