@@ -24,7 +24,7 @@ from .model import end_point, measurements
 from .outline import Outline, extract_outline, refine_outline
 from .rim import RecordingRim, RimChoice, choose_circle
 from .segmentation import Rect, soft_open
-from .segmenter import Segmenter, ThresholdSegmenter
+from .segmenter import Segmenter, default_segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
@@ -192,10 +192,10 @@ def measure(
     fractions of the image size. ``rim``: the recording's rim circle (``soft.rim``; traced), held
     as a strong prior; None: the frame's own rim. ``segmenter`` (a
     :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the paper's H/S test with
-    ``seg`` (``ThresholdSegmenter(seg)``).
+    ``seg`` (:func:`~sinkjax.soft.segmenter.default_segmenter`).
     Never raises for image content: problems are reported in ``status``.
     """
-    mask = (ThresholdSegmenter(seg) if segmenter is None else segmenter)(image, rect)
+    mask = (default_segmenter(seg) if segmenter is None else segmenter)(image, rect)
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
     return measure_from_mask(

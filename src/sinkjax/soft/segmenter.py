@@ -69,3 +69,8 @@ class ThresholdSegmenter(Segmenter):
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
         del image, rect
         return jnp.asarray(FEATURES_HUE_SAT, jnp.int32)
+
+
+def default_segmenter(seg: SegmentationParams) -> Segmenter:
+    """The soft method's segmenter when none is given, with a rig's thresholds ``seg``."""
+    return ThresholdSegmenter(seg)
