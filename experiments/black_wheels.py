@@ -26,8 +26,9 @@ import numpy as np
 from sinkjax import Status, metrics as sm, synth as S
 from sinkjax.classic.estimator import estimate_classic
 from sinkjax.soft.adaptive import AdaptiveSegmenter
-from sinkjax.soft.estimator import RigArrays, frame_result, measure, rig_arrays
-from sinkjax.soft.segmenter import FEATURE_NAMES
+from sinkjax.soft.estimator import RigArrays, measure, rig_arrays
+from sinkjax.soft.rows import frame_result
+from sinkjax.soft.segmenter import FEATURE_NAMES, Segmenter, ThresholdSegmenter
 from sinkjax.synth.materials import MATERIAL_PRESETS
 
 RESULTS = Path(__file__).parent / "results"
@@ -36,7 +37,7 @@ COLOURED = ("full", "hard_shading", "hard_mix")
 
 
 @jax.jit
-def _soft(image_u8: jax.Array, rig: RigArrays, segmenter: AdaptiveSegmenter | None):
+def _soft(image_u8: jax.Array, rig: RigArrays, segmenter: Segmenter):
     image = image_u8.astype(jnp.float64) / 255.0
     est = measure(
         image,
@@ -47,7 +48,7 @@ def _soft(image_u8: jax.Array, rig: RigArrays, segmenter: AdaptiveSegmenter | No
         uncertainty=rig.uncertainty,
         segmenter=segmenter,
     )
-    feats = jnp.asarray(-1) if segmenter is None else segmenter.features(image, rig.rect_px)
+    feats = segmenter.features(image, rig.rect_px)
     return est, feats
 
 
@@ -96,7 +97,7 @@ def coloured_identical(seed: int, n: int, width: int, height: int) -> dict[str, 
         arrays = rig_arrays(S.rig_for(scenes[0]))
         for i, sc in enumerate(scenes):
             img = jnp.asarray(S.render(sc, seed * 100 + i)[0])
-            a, _ = _soft(img, arrays, None)
+            a, _ = _soft(img, arrays, ThresholdSegmenter())
             b, f = _soft(img, arrays, AdaptiveSegmenter())
             leaves = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True)
             equal = all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in leaves)

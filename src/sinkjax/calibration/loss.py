@@ -29,8 +29,8 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
 from ..rig import SegmentationParams
-from ..soft.estimator import MIN_BOUNDARY_POINTS, measure_from_mask
-from ..soft.segmentation import wheel_mask
+from ..soft.adaptive import default_segmenter
+from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure_from_mask
 from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig, augment
 
@@ -176,8 +176,11 @@ def frame_loss(
     wheel_radius_mm: float,
 ) -> tuple[Float[Array, ""], FrameLoss]:
     """One frame's loss (sum over its measured cells plus the penalties) and what it saw."""
-    mask = wheel_mask(image, from_raw(raw), rect)
-    return mask_frame_loss(image, mask, target, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    seg = from_raw(raw)
+    est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    # The mask measure() made (the default segmenter): the contrast term looks at the same one.
+    mask = default_segmenter(seg)(image, rect)
+    return _estimate_loss(est, mask, target, travel_sign(travel), wheel_radius_mm)
 
 
 def mask_frame_loss(
@@ -196,6 +199,17 @@ def mask_frame_loss(
     est = measure_from_mask(
         image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, rim_range_px=rim_range_px
     )
+    sign = travel_sign(travel) if isinstance(travel, str) else travel
+    return _estimate_loss(est, mask, target, sign, wheel_radius_mm)
+
+
+def _estimate_loss(
+    est: SoftEstimate,
+    mask: Float[Array, "H W"],
+    target: Float[Array, " 3"],
+    sign: float | Float[Array, ""],
+    wheel_radius_mm: float | Float[Array, ""],
+) -> tuple[Float[Array, ""], FrameLoss]:
     values = jnp.stack([est.sinkage_mm, jnp.degrees(est.theta1_rad), jnp.degrees(est.theta2_rad)])
     ok = est.status == _OK
     # Not ok: counts as measuring zeros, so a failed fit's values never reach the loss.
@@ -212,11 +226,7 @@ def mask_frame_loss(
     usable = contact & ~ok & jnp.all(jnp.isfinite(circle)) & (circle[2] > 1.0)
     safe_circle = jnp.where(usable, circle, jnp.asarray([0.0, 0.0, 2.0], circle.dtype))
     contrast = boundary_contrast(
-        mask,
-        safe_circle,
-        target,
-        sign=travel_sign(travel) if isinstance(travel, str) else travel,
-        wheel_radius_mm=wheel_radius_mm,
+        mask, safe_circle, target, sign=sign, wheel_radius_mm=wheel_radius_mm
     )
     loss = loss + jnp.where(usable, CONTRAST_WEIGHT * contrast, 0.0)
     return loss, FrameLoss(values=values, status=est.status, loss=loss, circle=circle)

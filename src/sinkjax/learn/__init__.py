@@ -1,7 +1,7 @@
 """Learned segmenters trained end to end through the differentiable fit from frame labels.
 
-``features`` turns colour into inputs relative to the confidence rectangle -> ``segmenters``
-holds :class:`ColourMLP` and :class:`ConvSegmenter` -> ``data`` stacks labelled recordings (each
+``segmenters`` turns colour into inputs relative to the confidence rectangle and holds
+:class:`ColourMLP` and :class:`ConvSegmenter` -> ``data`` stacks labelled recordings (each
 with its rig) into batches -> ``train`` imitates a starting mask, then trains on the frame-label
 loss (:func:`sinkjax.calibration.mask_frame_loss`) with early stopping -> ``io`` saves and loads
 them (JSON header + equinox leaves) -> ``cli`` is ``sinkjax train``. Public names are flat here.
@@ -15,24 +15,22 @@ from .data import (
     split as split,
     synthetic_recording as synthetic_recording,
 )
-from .features import (
-    FEATURE_NAMES as FEATURE_NAMES,
-    colour_distance_mask as colour_distance_mask,
-    normalised_inputs as normalised_inputs,
-    pixel_features as pixel_features,
-    rect_statistics as rect_statistics,
-)
 from .io import (
     SegmenterFileError as SegmenterFileError,
     load_segmenter as load_segmenter,
     save_segmenter as save_segmenter,
 )
 from .segmenters import (
+    FEATURE_NAMES as FEATURE_NAMES,
     KINDS as KINDS,
     ColourMLP as ColourMLP,
     ConvSegmenter as ConvSegmenter,
     LearnedSegmenter as LearnedSegmenter,
     build as build,
+    colour_distance_mask as colour_distance_mask,
+    normalised_inputs as normalised_inputs,
+    pixel_features as pixel_features,
+    rect_statistics as rect_statistics,
 )
 from .train import (
     FrameScores as FrameScores,

@@ -1,10 +1,19 @@
 """Learned segmenters: a per-pixel colour MLP and a small CNN, both on rectangle-normalised inputs.
 
-Each is an ``eqx.Module`` with array leaves only (the parameters) and a static ``hyper`` record,
+Each is a :class:`~sinkjax.soft.segmenter.Segmenter` (the estimator, ``SoftRecording`` and
+``sinkjax estimate --segmenter`` take it like any other) with array leaves only (the parameters,
+traced: one compile per image size serves any trained values) and a static ``hyper`` record,
 called as ``segmenter(image, rect) -> mask``: image (H, W, 3) RGB in [0, 1], ``rect`` the
 confidence rectangle (x, y, w, h) px (static ints or a traced int array), mask (H, W) in [0, 1]
-(1 = wheel). Inputs are :func:`sinkjax.learn.features.normalised_inputs`: colour relative to the
-rig's own wheel face, so one model serves many wheels and lamps.
+(1 = wheel).
+
+Inputs (:func:`normalised_inputs`): a learned segmenter should carry across wheels, soils and
+lamps, and the one thing every rig says about its wheel is the confidence rectangle
+(docs/conventions.md §2), a patch that is always wheel face. So each pixel's colour features
+(:data:`FEATURE_NAMES`: R, G, B, the paper's intensity I and saturation S, and the chroma vector
+(S cos H, S sin H), continuous where hue wraps and 0 for grey pixels) reach the networks relative
+to that patch: ``(f - mean) / spread`` and ``f - mean``. A red wheel under a warm lamp and a grey
+wheel in low light then look alike: "like the face" or "not", in the face's own units.
 
 - :class:`ColourMLP`: pixel by pixel, inputs -> hidden -> hidden -> logit (~500 parameters).
 - :class:`ConvSegmenter`: a 1x1 stem, then two depthwise-separable 3x3 blocks (the second
@@ -13,7 +22,7 @@ rig's own wheel face, so one model serves many wheels and lamps.
 
 Parameters are stored in float32 and cast to the image's dtype on use, so a model trained under
 x64 runs in float32 and the other way round. Start from :func:`build` (a random start) and
-:func:`sinkjax.learn.train.imitate` (a sensible start: the threshold mask).
+:func:`sinkjax.learn.train.imitate` (a sensible start: the default mask).
 """
 
 from __future__ import annotations
@@ -27,8 +36,73 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ..soft.colour import rgb_to_hsi
 from ..soft.segmentation import Rect
-from .features import N_INPUTS, normalised_inputs
+from ..soft.segmenter import Segmenter, rect_weight
+
+# ----------------------------------------------------------------------------- features
+
+FEATURE_NAMES = ("r", "g", "b", "intensity", "saturation", "chroma_x", "chroma_y")
+N_FEATURES = len(FEATURE_NAMES)
+# Inputs to a network per pixel: the normalised features and the plain differences.
+N_INPUTS = 2 * N_FEATURES
+# The spread never drops below this (units of [0, 1] colour): a perfectly flat patch (a
+# synthetic face, a saturated sensor) must not make every other pixel infinitely far away.
+SPREAD_FLOOR = 0.01
+# Normalised features are squashed to +-Z_LIMIT: beyond a few spreads "not the face" is all
+# that matters, and bounded inputs keep a tiny network's activations in range.
+Z_LIMIT = 6.0
+
+
+def pixel_features(image: Float[Array, "H W 3"]) -> Float[Array, "H W F"]:
+    """The :data:`FEATURE_NAMES` of every pixel of an RGB image in [0, 1]."""
+    h_deg, s, i = rgb_to_hsi(image)
+    h = jnp.radians(h_deg)
+    return jnp.concatenate(
+        [image, jnp.stack([i, s, s * jnp.cos(h), s * jnp.sin(h)], axis=-1)], axis=-1
+    )
+
+
+def rect_statistics(
+    features: Float[Array, "H W F"], rect: Rect
+) -> tuple[Float[Array, " F"], Float[Array, " F"]]:
+    """Mean and spread (standard deviation, floored at :data:`SPREAD_FLOOR`) of each feature
+    over the confidence rectangle."""
+    height, width, _ = features.shape
+    w = rect_weight(rect, height, width, features.dtype)[..., None]
+    n = jnp.maximum(jnp.sum(w), 1.0)
+    mean = jnp.sum(w * features, axis=(0, 1)) / n
+    var = jnp.sum(w * (features - mean[None, None, :]) ** 2, axis=(0, 1)) / n
+    # sqrt(var + floor^2), not max(sqrt(var), floor): smooth, and finite gradient at var = 0.
+    return mean, jnp.sqrt(var + SPREAD_FLOOR**2)
+
+
+def normalised_inputs(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W C"]:
+    """The networks' per-pixel inputs: ``Z_LIMIT tanh(z / Z_LIMIT)`` of ``z = (f - mean) /
+    spread`` and ``f - mean`` (both over the rectangle), channel-last."""
+    f = pixel_features(image)
+    mean, spread = rect_statistics(f, rect)
+    d = f - mean[None, None, :]
+    z = d / spread[None, None, :]
+    return jnp.concatenate([Z_LIMIT * jnp.tanh(z / Z_LIMIT), d], axis=-1)
+
+
+def colour_distance_mask(
+    image: Float[Array, "H W 3"], rect: Rect, *, radius: float = 3.0, temperature: float = 0.5
+) -> Float[Array, "H W"]:
+    """A hand-made mask from the same inputs: how close (in rectangle spreads) a pixel's chroma
+    and intensity are to the face's. The starting point learned segmenters imitate when no
+    threshold mask is at hand; ``radius`` in spreads, ``temperature`` the sigmoid's width."""
+    f = pixel_features(image)
+    mean, spread = rect_statistics(f, rect)
+    z = (f - mean[None, None, :]) / spread[None, None, :]
+    # Chroma and intensity only: R, G, B repeat them. Guarded norm: no NaN gradient at 0.
+    d2 = jnp.sum(z[..., 3:] ** 2, axis=-1)
+    d = jnp.sqrt(d2 + 1e-12)
+    return jax.nn.sigmoid((radius - d) / temperature)
+
+
+# ----------------------------------------------------------------------------- models
 
 KINDS = ("mlp", "cnn")
 
@@ -57,7 +131,7 @@ def _depthwise3(x: Float[Array, "H W C"], w: Array, b: Array, dilation: int) -> 
     return out
 
 
-class LearnedSegmenter(eqx.Module):
+class LearnedSegmenter(Segmenter):
     """What the learned segmenters share: ``kind`` names the class in a saved file
     (:mod:`sinkjax.learn.io`) and ``hyper`` holds what rebuilds its skeleton."""
 

@@ -6,7 +6,7 @@ optimistix fit to the mask by implicit differentiation, then to the parameters),
 calibration's surrogate terms for labelled frames that do not measure, plus optionally
 ``pixel_weight`` x the mask's binary cross-entropy against an exact mask where one is known.
 
-:func:`imitate` gives a new model a sensible start (the rig's threshold mask, or the exact mask);
+:func:`imitate` gives a new model a sensible start (the rig's default mask, or the exact mask);
 :func:`train` runs Adam (optax) on mini-batches, scores held-out labelled frames every few steps,
 keeps the best model and stops early when they stop improving.
 """
@@ -25,7 +25,7 @@ import optax
 from jaxtyping import Array, Float
 
 from ..calibration.loss import boundary_contrast, mask_frame_loss
-from ..soft.segmentation import wheel_mask
+from ..soft.adaptive import default_segmenter
 from ..status import Status
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter
@@ -98,8 +98,14 @@ def loss_and_grad(
         jnp.stack([jnp.all(jnp.isfinite(g.reshape(g.shape[0], -1)), 1) for g in leaves]), 0
     )
     n = _n_cells(batch)
+    # The gradient in the parameters' own dtype (float32 as stored, see segmenters).
     grad = jax.tree_util.tree_map(
-        lambda g: jnp.sum(jnp.where(finite.reshape(-1, *[1] * (g.ndim - 1)), g, 0.0), 0) / n, grads
+        lambda g, p: (
+            jnp.sum(jnp.where(finite.reshape(-1, *[1] * (g.ndim - 1)), g, 0.0), 0)
+            / n.astype(g.dtype)
+        ).astype(p.dtype),
+        grads,
+        params,
     )
     return jnp.sum(losses) / n, grad, seen
 
@@ -131,14 +137,27 @@ def _imitation_step(
     def loss(s: LearnedSegmenter) -> Array:
         def one(row: FrameBatch) -> Array:
             image = row.images_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
-            target = jnp.where(row.has_mask, row.masks, wheel_mask(image, row.seg, row.rect_px))
+            start = default_segmenter(row.seg)(image, row.rect_px)
+            target = jnp.where(row.has_mask, row.masks, start)
             return _bce(s(image, row.rect_px), target)
 
         return jnp.mean(jax.vmap(one)(batch))
 
     value, grad = eqx.filter_value_and_grad(loss)(seg)
-    updates, state = optimiser.update(grad, state, eqx.filter(seg, eqx.is_array))
-    return eqx.apply_updates(seg, updates), state, value
+    return (*_adam_step(optimiser, seg, grad, state), value)
+
+
+def _adam_step(
+    optimiser: optax.GradientTransformation,
+    seg: LearnedSegmenter,
+    grad: LearnedSegmenter,
+    state: optax.OptState,
+) -> tuple[LearnedSegmenter, optax.OptState]:
+    # optax mixes Python floats with int32 step counts: allow that promotion here even where
+    # the user runs JAX with strict dtype promotion.
+    with jax.numpy_dtype_promotion("standard"):
+        updates, state = optimiser.update(grad, state, eqx.filter(seg, eqx.is_array))
+    return eqx.apply_updates(seg, updates), state
 
 
 def imitate(
@@ -151,7 +170,8 @@ def imitate(
     seed: int = 0,
 ) -> tuple[LearnedSegmenter, float]:
     """A sensible start: fit ``seg``'s mask to the exact mask where known, else to the rig's
-    threshold mask (:func:`sinkjax.soft.segmentation.wheel_mask`), by pixel cross-entropy.
+    default mask (:func:`sinkjax.soft.adaptive.default_segmenter` with the rig's thresholds),
+    by pixel cross-entropy.
     Cheap (no fit involved). Returns the model and its last cross-entropy."""
     optimiser = optax.adam(learning_rate)
     state = optimiser.init(eqx.filter(seg, eqx.is_array))
@@ -186,8 +206,8 @@ def score(seg: LearnedSegmenter, batches: Sequence[FrameBatch]) -> FrameScores:
     ok and no_contact, as :mod:`sinkjax.metrics` counts them)."""
     total, cells, rel, err, failed, n = 0.0, 0.0, [], [], 0, 0
     for b in batches:
-        loss, seen = evaluate(seg, b)
-        seen, targets = np.asarray(seen), np.asarray(b.targets)
+        loss, seen_jax = evaluate(seg, b)
+        seen, targets = np.asarray(seen_jax), np.asarray(b.targets)
         k = float(np.sum(np.isfinite(targets)))
         total, cells = total + float(loss) * k, cells + k
         for (z, _, _, code), t in zip(seen, targets, strict=True):
@@ -256,7 +276,7 @@ def train(
     held_out: Sequence[FrameBatch] = (),
     *,
     steps: int = 100,
-    learning_rate: float = 3e-3,
+    learning_rate: float = 1e-3,
     batch_size: int = 8,
     eval_every: int = 10,
     patience: int = 3,
@@ -294,8 +314,7 @@ def train(
     for step in bar:
         mini = _batches_of(batches, batch_size, rng)
         loss, grad, _ = loss_and_grad(seg, mini, pixel_weight, contrast_weight)
-        updates, state = optimiser.update(grad, state, eqx.filter(seg, eqx.is_array))
-        seg = eqx.apply_updates(seg, updates)
+        seg, state = _adam_step(optimiser, seg, grad, state)
         watched = float("nan")
         if step % eval_every == 0 or step == steps:
             watched = float(np.mean([float(evaluate(seg, b)[0]) for b in watch]))

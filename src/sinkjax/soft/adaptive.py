@@ -28,29 +28,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ..rig import MIN_WHEEL_CHROMA, SegmentationParams, rect_problem
+from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .segmentation import Rect, smooth, wheel_mask
-from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Segmenter
+from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Segmenter, rect_weight
 
 _SQRT3_2 = 0.8660254037844386
 _TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
-
-
-def rect_weight(
-    rect: Rect, height: int, width: int, dtype: jnp.dtype | type
-) -> Float[Array, "H W"]:
-    """1 inside the confidence rectangle (x, y, w, h), 0 outside; a tuple is checked (raises
-    ValueError if it does not lie inside the image), an int array of 4 may be traced."""
-    if isinstance(rect, tuple | list):
-        problem = rect_problem(tuple(rect), height, width)
-        if problem is not None:
-            raise ValueError(problem)
-    x0, y0, w0, h0 = (jnp.asarray(rect[i], jnp.int32) for i in range(4))
-    rows = jnp.arange(height, dtype=jnp.int32)
-    cols = jnp.arange(width, dtype=jnp.int32)
-    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
-    return inside.astype(dtype)
 
 
 def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
@@ -170,3 +154,10 @@ class AdaptiveSegmenter(Segmenter):
             wheel_mask(image, self.seg, rect),
             self.grey_mask(image, rect),
         )
+
+
+def default_segmenter(seg: SegmentationParams) -> Segmenter:
+    """The soft method's segmenter when none is given, with a rig's H/S thresholds ``seg``:
+    :class:`AdaptiveSegmenter`, which on a coloured wheel is the paper's H/S mask bit for bit
+    (``experiments/black_wheels.py`` checks the estimates) and also sees black wheels."""
+    return AdaptiveSegmenter(seg)

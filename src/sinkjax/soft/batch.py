@@ -22,11 +22,12 @@ from jaxtyping import Array
 from ..result import FrameResult, failed
 from ..rig import Rig, rect_problem, rim_hint_range_px
 from ..status import Status
+from .adaptive import default_segmenter
 from .estimator import Prepared, RigArrays, SoftEstimate, finish, prepare, rechoose, rig_arrays
 from .hough import radius_range_px
 from .rim import RecordingRim, combine_rims
 from .rows import frame_result as frame_result
-from .segmenter import Segmenter, default_segmenter
+from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel
 

@@ -17,6 +17,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ..geometry import travel_sign
 from ..rig import Rig, SegmentationParams, rim_hint_range_px
 from ..status import Status
+from .adaptive import default_segmenter
 from .checks import plausibility
 from .fit import build_evidence, fit
 from .hough import Circle, hough_rim
@@ -24,7 +25,7 @@ from .model import end_point, measurements
 from .outline import Outline, extract_outline, refine_outline
 from .rim import RecordingRim, RimChoice, choose_circle
 from .segmentation import Rect, soft_open
-from .segmenter import Segmenter, default_segmenter
+from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
@@ -191,8 +192,9 @@ def measure(
     ``rim_range_px``: the rim radii to search (px; may be traced), None for the default
     fractions of the image size. ``rim``: the recording's rim circle (``soft.rim``; traced), held
     as a strong prior; None: the frame's own rim. ``segmenter`` (a
-    :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the paper's H/S test with
-    ``seg`` (:func:`~sinkjax.soft.segmenter.default_segmenter`).
+    :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the default with the
+    thresholds ``seg`` (:func:`~sinkjax.soft.adaptive.default_segmenter`: the paper's H/S test
+    on a coloured wheel, intensity/chroma/texture on a black one).
     Never raises for image content: problems are reported in ``status``.
     """
     mask = (default_segmenter(seg) if segmenter is None else segmenter)(image, rect)

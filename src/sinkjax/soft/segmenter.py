@@ -16,7 +16,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ..rig import SegmentationParams
+from ..rig import SegmentationParams, rect_problem
 from .segmentation import Rect, wheel_mask
 
 # Codes for which features a segmenter separated wheel from soil with, per frame (the run
@@ -29,6 +29,22 @@ FEATURE_NAMES = {
     FEATURES_INTENSITY: "intensity+texture",
     FEATURES_LEARNED: "learned",
 }
+
+
+def rect_weight(
+    rect: Rect, height: int, width: int, dtype: jnp.dtype | type
+) -> Float[Array, "H W"]:
+    """1 inside the confidence rectangle (x, y, w, h), 0 outside; a tuple is checked (raises
+    ValueError if it does not lie inside the image), an int array of 4 may be traced."""
+    if isinstance(rect, tuple | list):
+        problem = rect_problem(tuple(rect), height, width)
+        if problem is not None:
+            raise ValueError(problem)
+    x0, y0, w0, h0 = (jnp.asarray(rect[i], jnp.int32) for i in range(4))
+    rows = jnp.arange(height, dtype=jnp.int32)
+    cols = jnp.arange(width, dtype=jnp.int32)
+    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
+    return inside.astype(dtype)
 
 
 class Segmenter(eqx.Module):
@@ -69,8 +85,3 @@ class ThresholdSegmenter(Segmenter):
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
         del image, rect
         return jnp.asarray(FEATURES_HUE_SAT, jnp.int32)
-
-
-def default_segmenter(seg: SegmentationParams) -> Segmenter:
-    """The soft method's segmenter when none is given, with a rig's thresholds ``seg``."""
-    return ThresholdSegmenter(seg)
