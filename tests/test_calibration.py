@@ -102,6 +102,7 @@ BAD_LABELS = [
         ["row 2, column sinkage_mm", "not a number"],
     ),
     ("negative", [["a.png", "-1", "30", "20"]], None, ["row 2, column sinkage_mm", "range"]),
+    ("angle", [["a.png", "1", "30", "-181"]], None, ["row 2, column theta2_deg", "[-180, 180]"]),
     (
         "all empty",
         [["a.png", "", "", ""], ["b.png", "", "", ""]],
@@ -185,6 +186,14 @@ def test_labels_read_with_extra_columns_and_empty_cells(small_set: Path) -> None
     np.testing.assert_array_equal(
         frames.targets, [[12.5, 30.0, math.nan], [math.nan, math.nan, 7.0]]
     )
+
+
+def test_negative_angles_are_labels(small_set: Path) -> None:
+    """atan2 angles (docs/conventions.md §1) turn negative when a boundary end passes below the
+    centre (hollow terrain): such labels are read, not refused."""
+    path = write_labels(small_set, [["a.png", "3.5", "-4.25", "-12"], ["b.png", "1", "180", ""]])
+    frames = C.read_labels(path)
+    np.testing.assert_array_equal(frames.targets, [[3.5, -4.25, -12.0], [1.0, 180.0, math.nan]])
 
 
 # ----------------------------------------------------------------------------- parameters

@@ -50,6 +50,7 @@ from .rig import (
     rig_to_toml as rig_to_toml,
     save_rig as save_rig,
 )
+from .soft.adaptive import AdaptiveSegmenter as AdaptiveSegmenter
 from .soft.batch import SoftRecording as SoftRecording, estimate_batch as estimate_batch
 from .soft.colour import circular_mean_deg as circular_mean_deg, rgb_to_hsi as rgb_to_hsi
 from .soft.estimator import (
@@ -62,6 +63,10 @@ from .soft.segmentation import (
     confidence_means as confidence_means,
     soft_mask as soft_mask,
     wheel_mask as wheel_mask,
+)
+from .soft.segmenter import (
+    Segmenter as Segmenter,
+    ThresholdSegmenter as ThresholdSegmenter,
 )
 from .soft.settings import SoftSettings as SoftSettings
 from .soft.uncertainty import UncertaintyModel as UncertaintyModel

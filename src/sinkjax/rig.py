@@ -45,6 +45,11 @@ class SegmentationParams(eqx.Module):
         return {name: float(getattr(self, name)) for name in SEG_FIELDS}
 
 
+# The paper's H/S test needs a wheel with colour: below this mean chroma (saturation units, the
+# length of the confidence rectangle's mean (S cos H, S sin H)) H_w is noise. A black or bare-metal
+# wheel sits at ~0.02-0.04, the least coloured painted wheels of the synthetic presets at > 0.05.
+MIN_WHEEL_CHROMA = 0.05
+
 SEG_FIELDS = (
     "p_d_hue",
     "p_a_hue",

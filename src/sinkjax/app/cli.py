@@ -51,6 +51,12 @@ COMMANDS: dict[str, Command] = {
         lambda p: __import__("sinkjax.calibration.cli", fromlist=["_"]).add_cli_arguments(p),
         lambda a: __import__("sinkjax.calibration.cli", fromlist=["_"]).run_cli(a),
     ),
+    # train lives in sinkjax.learn.cli, imported when it is used.
+    "train": Command(
+        "train a learned wheel segmenter from labelled frames, through the fit",
+        lambda p: __import__("sinkjax.learn.cli", fromlist=["_"]).add_cli_arguments(p),
+        lambda a: __import__("sinkjax.learn.cli", fromlist=["_"]).run_cli(a),
+    ),
     "demo": Command("run the whole job on a built-in synthetic recording", _add_demo, _run_demo),
     "smooth": Command("add Kalman/RTS-smoothed columns to a results CSV", _add_smooth, _run_smooth),
     "plot": Command("plot sinkage and angles over the frames", _add_plot, _run_plot),

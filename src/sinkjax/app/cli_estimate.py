@@ -45,6 +45,12 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
         help="soft: differentiable estimator with uncertainty (default); classic: the paper's",
     )
     p.add_argument(
+        "--segmenter",
+        metavar="FILE",
+        help="soft method: make the wheel masks with a learned segmenter written by "
+        "'sinkjax train' instead of the default segmenter with the rig's thresholds",
+    )
+    p.add_argument(
         "--out", default="results.csv", metavar="CSV", help="results CSV (default: results.csv)"
     )
     p.add_argument("--overlay", metavar="DIR", help="also write one overlay PNG per frame here")
@@ -115,6 +121,14 @@ def _run_estimate(args: argparse.Namespace) -> int:
         load_method(args.method)
     except MethodUnavailable as e:
         raise UsageError(str(e)) from e
+    segmenter = None
+    if args.segmenter is not None:
+        if args.method != "soft":
+            raise UsageError("--segmenter needs the soft method (--method soft)")
+        from ..learn.io import load_segmenter
+
+        # A bad file raises SegmenterFileError (a RigError) naming the file and what is wrong.
+        segmenter = load_segmenter(args.segmenter)
     parallel = None
     if args.workers is not None or args.scheduler is not None:
         try:
@@ -129,6 +143,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
             method=args.method,
             batch_size=args.batch_size,
             rim=args.rim,
+            segmenter=segmenter,
             overlay_dir=args.overlay,
             overlay_video=args.overlay_video,
             select=select,

@@ -20,7 +20,7 @@ import threading
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 
@@ -29,6 +29,9 @@ from ..rig import Rig
 from .frames import ALL_FRAMES, FrameSelection, count_frames
 from .pipeline import BatchMethod
 from .sources import Inputs, Recording, Source
+
+if TYPE_CHECKING:
+    from ..soft.segmenter import Segmenter
 
 log = logging.getLogger("sinkjax")
 
@@ -86,6 +89,7 @@ class Task:
     recording_sources: tuple[Source, ...] = ()
     recording_select: FrameSelection = ALL_FRAMES
     recording_first_image_index: int = 0
+    segmenter: Segmenter | None = None  # the soft method's (None: the default)
 
 
 @dataclass
@@ -133,6 +137,7 @@ def plan_tasks(
     chunk_frames: int = CHUNK_FRAMES,
     overlay_dir: str | Path | None = None,
     rim: str = "recording",
+    segmenter: Segmenter | None = None,
 ) -> list[Task]:
     """The run cut into tasks in input order: each video its own task or chunks of it, the
     image files of a recording in chunks of ``chunk_frames`` (rounded up to the batch size)."""
@@ -157,7 +162,7 @@ def plan_tasks(
         tasks.append(
             Task(rec_i, absolute, rec.rig, sel, image_index, mine, method, batch_size,
                  None if overlay_dir is None else str(Path(overlay_dir).absolute()),
-                 options, cache, sizes[rec_i], rim, whole, select, first_index[rec_i])
+                 options, cache, sizes[rec_i], rim, whole, select, first_index[rec_i], segmenter)
         )  # fmt: skip
 
     for rec_i, rec in enumerate(inputs.recordings):
@@ -259,6 +264,7 @@ def run_task(task: Task) -> TaskResult:
                 batch_size=task.batch_size,
                 rim=task.rim,
                 first_frames=first,
+                segmenter=task.segmenter,
             )
             for frame, result in pairs:
                 if overlays is not None and frame.image is not None:

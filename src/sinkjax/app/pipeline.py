@@ -14,12 +14,16 @@ import inspect
 import logging
 from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..result import FrameResult, failed
 from ..rig import Rig, rect_problem
 from ..status import Status
+
+if TYPE_CHECKING:
+    from ..soft.segmenter import Segmenter
 from .frames import ALL_FRAMES, Frame, FrameSelection, check_image_size, iter_frames
 from .sources import Inputs, Recording, Source, assign_rigs, expand_paths, with_rig
 
@@ -37,10 +41,16 @@ class MethodUnavailable(RuntimeError):
 FirstFrames = Callable[[int, int], list[np.ndarray]]
 
 
-def _soft_batch(rim: str = "recording", first_frames: FirstFrames | None = None) -> BatchMethod:
+def _soft_batch(
+    rim: str = "recording",
+    first_frames: FirstFrames | None = None,
+    segmenter: Segmenter | None = None,
+) -> BatchMethod:
     try:
         module = importlib.import_module("sinkjax.soft.batch")
-        recording: BatchMethod = module.SoftRecording(rim=rim, first_frames=first_frames)
+        recording: BatchMethod = module.SoftRecording(
+            rim=rim, first_frames=first_frames, segmenter=segmenter
+        )
     except (ImportError, AttributeError) as e:
         raise MethodUnavailable(
             "the soft method (sinkjax.soft.batch.SoftRecording) is not available in this "
@@ -68,20 +78,29 @@ RIM_MODES = ("recording", "frame")
 
 
 def load_method(
-    method: str, rim: str = "recording", first_frames: FirstFrames | None = None
+    method: str,
+    rim: str = "recording",
+    first_frames: FirstFrames | None = None,
+    segmenter: Segmenter | None = None,
 ) -> BatchMethod:
     """The batch function for ``method`` ("soft" or "classic") for ONE recording: call it again
     for the next recording. The soft method keeps the recording's rim (``rim`` "recording",
     found from ``first_frames(height, width)``, the recording's first readable frames of a size;
     see :class:`sinkjax.soft.batch.SoftRecording`), or measures each frame with its own
-    ("frame").
+    ("frame"). ``segmenter``: the soft method's segmenter (None: the default with the rig's
+    thresholds; see :class:`sinkjax.soft.segmenter.Segmenter`).
 
-    Raises ValueError for an unknown name and MethodUnavailable if it cannot be imported.
+    Raises ValueError for an unknown name, a segmenter for the classic method, and
+    MethodUnavailable if the method cannot be imported.
     """
     if method not in _LOADERS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     if rim not in RIM_MODES:
         raise ValueError(f"unknown rim mode {rim!r}; choose one of {', '.join(RIM_MODES)}")
+    if segmenter is not None:
+        if method != "soft":
+            raise ValueError(f"a segmenter needs the soft method, not {method!r}")
+        return _soft_batch(rim, first_frames, segmenter)
     return _LOADERS[method](rim, first_frames)
 
 
@@ -157,6 +176,7 @@ def iter_estimates(
     batch_size: int = 8,
     rim: str = "recording",
     first_frames: FirstFrames | None = None,
+    segmenter: Segmenter | None = None,
 ) -> Iterator[tuple[Frame, FrameResult]]:
     """Each frame with its result, in input order, exactly one per frame.
 
@@ -165,14 +185,14 @@ def iter_estimates(
     are smaller than ``MIN_IMAGE_SIDE_PX`` (``bad_image``), or whose confidence rectangle lies
     off the image (``bad_rect``), get their row without reaching the method. ``method`` may
     also be a batch function ``(images, rig, names) -> results``. ``frames`` are one recording
-    (``rim`` and ``first_frames``: see :func:`load_method`). Raises ValueError /
+    (``rim``, ``first_frames`` and ``segmenter``: see :func:`load_method`). Raises ValueError /
     MethodUnavailable before reading any frame.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if callable(method):
         return _iter_estimates(frames, rig, method, batch_size, retry=True)
-    run = load_method(method, rim, first_frames)
+    run = load_method(method, rim, first_frames, segmenter)
     if method == "soft":
         return _iter_estimates(frames, rig, _fixed_shape(run, batch_size), batch_size, retry=True)
     return _iter_estimates(frames, rig, run, 1, retry=False)
@@ -273,6 +293,7 @@ def iter_recordings(
     select: FrameSelection = ALL_FRAMES,
     skip: Collection[str] = frozenset(),
     rim: str = "recording",
+    segmenter: Segmenter | None = None,
 ) -> Iterator[tuple[Recording, Frame, FrameResult]]:
     """Every selected frame of every recording, with its result, in input order.
 
@@ -293,7 +314,13 @@ def iter_recordings(
         first = first_frames_reader(rec.sources, rec.rig, select, image_index)
         image_index += sum(s.kind == "image" for s in rec.sources)
         pairs = iter_estimates(
-            frames, rec.rig, method=method, batch_size=batch_size, rim=rim, first_frames=first
+            frames,
+            rec.rig,
+            method=method,
+            batch_size=batch_size,
+            rim=rim,
+            first_frames=first,
+            segmenter=segmenter,
         )
         for frame, result in pairs:
             yield rec, frame, result

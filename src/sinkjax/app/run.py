@@ -10,6 +10,7 @@ from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 
@@ -26,6 +27,9 @@ from .resume import prepare_resume
 from .smoothing import SmoothingOptions, smooth_csv
 from .sources import Inputs, Recording, expand_paths, open_recordings, with_rig
 from .summary import write_summary
+
+if TYPE_CHECKING:
+    from ..soft.segmenter import Segmenter
 
 log = logging.getLogger("sinkjax")
 
@@ -94,6 +98,7 @@ def estimate_to_csv(
     method: str | BatchMethod = "soft",
     batch_size: int = 8,
     rim: str = "recording",
+    segmenter: Segmenter | None = None,
     overlay_dir: str | Path | None = None,
     overlay_video: str | Path | None = None,
     select: FrameSelection = ALL_FRAMES,
@@ -109,7 +114,8 @@ def estimate_to_csv(
     (:func:`sinkjax.app.sources.open_recordings`). For PATHs, ``rig`` (if given) serves every
     recording; else each uses its own ``rig.toml``, then ``rig_path`` (docs/conventions.md §2).
     ``rim``: "recording" (the soft method finds each recording's rim once, from its first
-    frames) or "frame" (each frame its own; a moving camera).
+    frames) or "frame" (each frame its own; a moving camera). ``segmenter``: the soft method's
+    segmenter (e.g. :func:`sinkjax.learn.load_segmenter`); None: the default.
     ``overlay_dir``: also write one overlay PNG per readable frame there; ``overlay_video``: an
     annotated MP4 (mp4v) with one video frame per row. ``select``: which frame indices (see
     :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
@@ -140,8 +146,10 @@ def estimate_to_csv(
             "--overlay-video is drawn from the frames in this process: drop it, or run without "
             "--workers/--scheduler"
         )
-    if parallel is not None and isinstance(method, str):
-        load_method(method, rim)  # an unknown or missing method fails here, not on every worker
+    if (parallel is not None or segmenter is not None) and isinstance(method, str):
+        # An unknown or missing method, or a segmenter for classic, fails here, not on every
+        # worker (or after the output was opened).
+        load_method(method, rim, segmenter=segmenter)
     done: set[str] = set()  # filled below; the frames are read lazily, after that
     # Only now, with every argument checked, may an output be touched; prepare_resume checks
     # the whole file before it changes a byte of it.
@@ -184,14 +192,20 @@ def estimate_to_csv(
             rows: Iterator[tuple[Recording, FrameResult, bool, Frame | None]]
             if runner is None:
                 pairs = iter_recordings(
-                    inputs, method=method, batch_size=batch_size, select=select, skip=done, rim=rim
+                    inputs,
+                    method=method,
+                    batch_size=batch_size,
+                    select=select,
+                    skip=done,
+                    rim=rim,
+                    segmenter=segmenter,
                 )
                 rows = (
                     (rec, result, frame.image is not None, frame) for rec, frame, result in pairs
                 )
             else:
                 rows = _parallel_rows(
-                    runner, inputs, method, batch_size, select, done, overlay_dir, rim
+                    runner, inputs, method, batch_size, select, done, overlay_dir, rim, segmenter
                 )
             for rec, result, was_read, frame in rows:
                 writer.write(result)
@@ -224,12 +238,14 @@ def _parallel_rows(
     done: set[str],
     overlay_dir: str | Path | None,
     rim: str,
+    segmenter: Segmenter | None,
 ) -> Iterator[tuple[Recording, FrameResult, bool, Frame | None]]:
     tasks = plan_tasks(
         inputs,
         method=method,
         batch_size=batch_size,
         rim=rim,
+        segmenter=segmenter,
         select=select,
         skip=done,
         chunk_frames=runner.options.chunk_frames,

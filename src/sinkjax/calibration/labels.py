@@ -127,8 +127,10 @@ def _parse_cell(cell: str, where: str, column: str) -> float:
             f"{where} {column}: {cell!r} is not a finite number; leave the cell empty if it was "
             "not measured"
         )
-    limit = math.inf if column == "sinkage_mm" else 180.0
-    if not 0.0 <= value <= limit:
-        unit = "mm >= 0" if column == "sinkage_mm" else "degrees in [0, 180]"
+    # The angles are atan2 angles (docs/conventions.md §1): a boundary end below the centre
+    # (hollow terrain) gives a negative angle, so only |angle| <= 180 degrees is required.
+    low, high = (0.0, math.inf) if column == "sinkage_mm" else (-180.0, 180.0)
+    if not low <= value <= high:
+        unit = "mm >= 0" if column == "sinkage_mm" else "degrees in [-180, 180]"
         raise LabelError(f"{where} {column}: {cell!r} is out of range ({unit})")
     return value

@@ -29,8 +29,8 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
 from ..rig import SegmentationParams
-from ..soft.estimator import MIN_BOUNDARY_POINTS, measure
-from ..soft.segmentation import wheel_mask
+from ..soft.adaptive import default_segmenter
+from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure_from_mask
 from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig, augment
 
@@ -102,11 +102,13 @@ def pseudo_huber(x: Float[Array, "*n"], delta: float = HUBER_DELTA) -> Float[Arr
 
 
 class FrameLoss(eqx.Module):
-    """One frame as the loss saw it: estimates (sinkage_mm, theta1_deg, theta2_deg), status."""
+    """One frame as the loss saw it: estimates (sinkage_mm, theta1_deg, theta2_deg), status,
+    and the fitted rim circle (cx, cy, r px; no gradient)."""
 
     values: Float[Array, "*n 3"]
     status: Int[Array, "*n"]
     loss: Float[Array, "*n"]
+    circle: Float[Array, "*n 3"]
 
 
 def labelled_soil_side(
@@ -114,7 +116,7 @@ def labelled_soil_side(
     v_px: Float[Array, "H W"],
     r_px: Float[Array, ""],
     target: Float[Array, " 3"],
-    wheel_radius_mm: float,
+    wheel_radius_mm: float | Float[Array, ""],
 ) -> Float[Array, "H W"]:
     """Signed distance (px, > 0 on the soil side) to the soil line that the labels describe.
 
@@ -139,8 +141,8 @@ def boundary_contrast(
     circle: Float[Array, " 3"],
     target: Float[Array, " 3"],
     *,
-    sign: float,
-    wheel_radius_mm: float,
+    sign: float | Float[Array, ""],
+    wheel_radius_mm: float | Float[Array, ""],
 ) -> Float[Array, ""]:
     """How far the soft mask is from an edge at the labelled soil line, in [0, 2].
 
@@ -176,6 +178,38 @@ def frame_loss(
     """One frame's loss (sum over its measured cells plus the penalties) and what it saw."""
     seg = from_raw(raw)
     est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    # The mask measure() made (the default segmenter): the contrast term looks at the same one.
+    mask = default_segmenter(seg)(image, rect)
+    return _estimate_loss(est, mask, target, travel_sign(travel), wheel_radius_mm)
+
+
+def mask_frame_loss(
+    image: Float[Array, "H W 3"],
+    mask: Float[Array, "H W"],
+    target: Float[Array, " 3"],
+    *,
+    travel: str | Float[Array, ""],
+    wheel_radius_mm: float | Float[Array, ""],
+    rim_range_px: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
+) -> tuple[Float[Array, ""], FrameLoss]:
+    """:func:`frame_loss` of any soft wheel mask (a learned segmenter's, say): the fit's error
+    against ``target`` plus the penalties, differentiable w.r.t. ``mask``. ``travel`` may be a
+    traced sign (+1.0 / -1.0) and the rig's numbers arrays, as in
+    :func:`sinkjax.soft.estimator.measure_from_mask`."""
+    est = measure_from_mask(
+        image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, rim_range_px=rim_range_px
+    )
+    sign = travel_sign(travel) if isinstance(travel, str) else travel
+    return _estimate_loss(est, mask, target, sign, wheel_radius_mm)
+
+
+def _estimate_loss(
+    est: SoftEstimate,
+    mask: Float[Array, "H W"],
+    target: Float[Array, " 3"],
+    sign: float | Float[Array, ""],
+    wheel_radius_mm: float | Float[Array, ""],
+) -> tuple[Float[Array, ""], FrameLoss]:
     values = jnp.stack([est.sinkage_mm, jnp.degrees(est.theta1_rad), jnp.degrees(est.theta2_rad)])
     ok = est.status == _OK
     # Not ok: counts as measuring zeros, so a failed fit's values never reach the loss.
@@ -192,14 +226,10 @@ def frame_loss(
     usable = contact & ~ok & jnp.all(jnp.isfinite(circle)) & (circle[2] > 1.0)
     safe_circle = jnp.where(usable, circle, jnp.asarray([0.0, 0.0, 2.0], circle.dtype))
     contrast = boundary_contrast(
-        wheel_mask(image, seg, rect),
-        safe_circle,
-        target,
-        sign=travel_sign(travel),
-        wheel_radius_mm=wheel_radius_mm,
+        mask, safe_circle, target, sign=sign, wheel_radius_mm=wheel_radius_mm
     )
     loss = loss + jnp.where(usable, CONTRAST_WEIGHT * contrast, 0.0)
-    return loss, FrameLoss(values=values, status=est.status, loss=loss)
+    return loss, FrameLoss(values=values, status=est.status, loss=loss, circle=circle)
 
 
 class LossAndGrad(eqx.Module):

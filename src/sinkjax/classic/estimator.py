@@ -45,7 +45,7 @@ from ..geometry import (
     travel_sign,
 )
 from ..result import FrameResult, Overlay, failed, no_contact
-from ..rig import Rig, rim_hint_range_px
+from ..rig import MIN_WHEEL_CHROMA, Rig, rim_hint_range_px
 from ..status import Status
 from .outline import (
     hough_bin_px,
@@ -63,6 +63,7 @@ from .segmentation import (
     fill_holes,
     hard_mask,
     rgb_to_hsi_np,
+    wheel_chroma_np,
     wheel_region,
 )
 
@@ -166,6 +167,18 @@ def estimate_classic(
     # Step 2: HSI. Step 3: means, ranges, binary image, morphology.
     h_deg, s, _ = rgb_to_hsi_np(img)
     h_w, s_w = confidence_means_np(h_deg, s, rect)
+    chroma = wheel_chroma_np(h_deg, s, rect)
+    if chroma < MIN_WHEEL_CHROMA:
+        # A black or bare-metal wheel: H_w is noise, and the H/S bands would select noise
+        # that can still hold a circle, giving confidently wrong numbers.
+        return failed(
+            name,
+            Status.NO_WHEEL,
+            f"the wheel has no colour (mean chroma {chroma:.3f} < {MIN_WHEEL_CHROMA} at the "
+            f"confidence rect {list(rect)}, S_w = {s_w:.3f}): the paper's hue/saturation test "
+            "cannot see it; use the soft method (--method soft), which segments a black or "
+            "metal wheel by intensity",
+        )
     mask = hard_mask(h_deg, s, h_w, s_w, rig.segmentation)
     region = wheel_region(mask, rect)
     if region is None or np.count_nonzero(region) < _MIN_WHEEL_PIXELS:

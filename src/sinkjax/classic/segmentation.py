@@ -74,6 +74,15 @@ def confidence_means_np(
     return h_w % 360.0, s_w
 
 
+def wheel_chroma_np(h_deg: np.ndarray, s: np.ndarray, rect: tuple[int, int, int, int]) -> float:
+    """The length of the mean (S cos H, S sin H) over ``rect``: how much colour the wheel has, in
+    saturation units (noise in the hue of a grey wheel averages out; S_w alone would not)."""
+    x, y, w, h = check_rect(rect, np.shape(h_deg))
+    hh = np.radians(np.asarray(h_deg, dtype=np.float64)[y : y + h, x : x + w])
+    ss = np.asarray(s, dtype=np.float64)[y : y + h, x : x + w]
+    return math.hypot(float(np.mean(ss * np.cos(hh))), float(np.mean(ss * np.sin(hh))))
+
+
 def hard_mask(
     h_deg: np.ndarray, s: np.ndarray, h_w_deg: float, s_w: float, seg: SegmentationParams
 ) -> np.ndarray:

@@ -10,7 +10,6 @@ list of frames taken as one recording.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -20,15 +19,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..geometry import from_wheel_frame, travel_sign
-from ..result import FrameResult, Overlay, failed, no_contact
-from ..rig import Rig, SegmentationParams, rect_problem, rim_hint_range_px
+from ..result import FrameResult, failed
+from ..rig import Rig, rect_problem, rim_hint_range_px
 from ..status import Status
-from .checks import message as check_message
+from .adaptive import default_segmenter
 from .estimator import Prepared, RigArrays, SoftEstimate, finish, prepare, rechoose, rig_arrays
 from .hough import radius_range_px
-from .rim import RIM_HIDDEN, RIM_MOVED, RecordingRim, combine_rims
-from .segmentation import wheel_mask
+from .rim import RecordingRim, combine_rims
+from .rows import frame_result as frame_result
+from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel
 
@@ -42,10 +41,11 @@ def _float(image_u8: Array) -> Array:
 
 
 def _prepare_u8(
-    image_u8: Array, seg: SegmentationParams, rig: RigArrays, rim: RecordingRim
+    image_u8: Array, segmenter: Segmenter, rig: RigArrays, rim: RecordingRim
 ) -> Prepared:
+    # The mask stage: the segmenter is an argument, its parameters traced like the rig's.
     image = _float(image_u8)
-    return prepare(image, wheel_mask(image, seg, rig.rect_px), rim, None, rig.rim_range_px)
+    return prepare(image, segmenter(image, rig.rect_px), rim, None, rig.rim_range_px)
 
 
 def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstimate:
@@ -58,8 +58,8 @@ def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstim
     )
 
 
-# No static arguments: these compile once per image size (and batch size), whatever the rig
-# and whatever the rim.
+# No static arguments: these compile once per image size (and batch size) and segmenter
+# structure, whatever the rig, the rim and the segmenter's parameter values.
 _prepare_one = jax.jit(_prepare_u8)
 _rechoose_one = jax.jit(rechoose)
 _finish_one = jax.jit(_finish_u8)
@@ -128,6 +128,9 @@ class SoftRecording:
     chunk of a long video finds the same rim as the whole run); None: the first batch of each
     size is taken to be them. ``rims`` holds the rim per image size (``use`` 0 where the first
     frames gave no consensus: frames of that size are measured with their own rims).
+    ``segmenter`` makes the masks (a :class:`~sinkjax.soft.segmenter.Segmenter`, e.g. a learned
+    one, :func:`sinkjax.learn.load_segmenter`); None: the default segmenter with each rig's
+    thresholds (``rig.segmentation``).
     """
 
     def __init__(
@@ -136,12 +139,14 @@ class SoftRecording:
         rim: str | RecordingRim = "recording",
         uncertainty: UncertaintyModel | None = None,
         first_frames: FirstFrames | None = None,
+        segmenter: Segmenter | None = None,
     ) -> None:
         if not isinstance(rim, RecordingRim) and rim not in ("recording", "frame"):
             raise ValueError(f"rim must be 'recording', 'frame' or a RecordingRim, got {rim!r}")
         self.mode = rim
         self.uncertainty = uncertainty
         self.first_frames = first_frames
+        self.segmenter = segmenter
         self.rims: dict[tuple[int, int], RecordingRim] = {}
 
     def rim_for(self, height: int, width: int) -> RecordingRim | None:
@@ -171,7 +176,7 @@ class SoftRecording:
         problem = rect_problem(rig.confidence_rect, height, width)
         if problem is not None:
             return [failed(n, Status.BAD_RECT, problem) for n in names]
-        run = _Run(rig, self.uncertainty, pad_to)
+        run = _Run(rig, self.uncertainty, pad_to, self.segmenter)
         decided = (height, width) in self.rims
         out = self._estimates(images, run)
         rim = self.rims.get((height, width))
@@ -227,11 +232,22 @@ class SoftRecording:
 class _Run:
     """One call's compiled-function plumbing: frame by frame on a CPU, padded batches else."""
 
-    def __init__(self, rig: Rig, uncertainty: UncertaintyModel | None, pad_to: int | None):
-        # Fixed dtypes (not weak ones) for the thresholds too: a rig loaded from a file and one
-        # built in Python must hit the same compiled function.
-        dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
-        self.seg = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype), rig.segmentation)
+    def __init__(
+        self,
+        rig: Rig,
+        uncertainty: UncertaintyModel | None,
+        pad_to: int | None,
+        segmenter: Segmenter | None = None,
+    ):
+        self.default = segmenter is None
+        if segmenter is None:
+            # Fixed dtypes (not weak ones) for the thresholds too: a rig loaded from a file and
+            # one built in Python must hit the same compiled function.
+            dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+            segmenter = jax.tree_util.tree_map(
+                lambda v: jnp.asarray(v, dtype), default_segmenter(rig.segmentation)
+            )
+        self.segmenter = segmenter
         self.arrays = rig_arrays(rig, uncertainty)
         self.vmap = _use_vmap()
         self.pad_to = pad_to
@@ -250,12 +266,17 @@ class _Run:
             "finish": (_finish_one, _finish_batch),
         }
         fn = fns[name][int(self.vmap)]
+        if not self.default:
+            # Exported functions (set_compiled_provider) are made for the default segmenter
+            # only; another segmenter (a learned one) runs through jit, which still compiles
+            # once per image size and segmenter structure (its parameters are traced).
+            return fn
         return _compiled(f"{name}_batch" if self.vmap else f"{name}_one", fn, args)
 
     def prepare(self, images: list[np.ndarray], rim: RecordingRim) -> list[Prepared]:
         frames = self._frames(images)
-        fn = self._fn("prepare", (frames[0], self.seg, self.arrays, rim))
-        return [fn(f, self.seg, self.arrays, rim) for f in frames]
+        fn = self._fn("prepare", (frames[0], self.segmenter, self.arrays, rim))
+        return [fn(f, self.segmenter, self.arrays, rim) for f in frames]
 
     def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
         fn = self._fn("rechoose", (prepared[0], rim))
@@ -299,98 +320,15 @@ def estimate_batch(
     pad_to: int | None = None,
     uncertainty: UncertaintyModel | None = None,
     rim: str | RecordingRim = "recording",
+    segmenter: Segmenter | None = None,
 ) -> list[FrameResult]:
     """Soft estimates for frames of one size (uint8 RGB (H, W, 3) each), one row per frame,
-    taken as one recording (see :class:`SoftRecording` for ``rim``).
+    taken as one recording (see :class:`SoftRecording` for ``rim`` and ``segmenter``).
 
     ``pad_to`` pads the batch (repeating a frame) on an accelerator so that every call has the
     same shape and the compiled functions are reused; by default to :func:`padded_size`. The
     rig's numbers are traced (:class:`RigArrays`): a new rig of a size already seen compiles
     nothing.
     """
-    return SoftRecording(rim=rim, uncertainty=uncertainty)(images, rig, names, pad_to=pad_to)
-
-
-def _rim_message(out: SoftEstimate, i: int) -> str:
-    code = int(out.rim_code[i])
-    if code == RIM_HIDDEN:
-        return (
-            f"the rim is hardly seen in this frame ({100 * float(out.rim_support[i]):.0f}% of it): "
-            "measured with the recording's rim"
-        )
-    if code == RIM_MOVED:
-        cx, cy, r = (float(v) for v in out.own_rim_px[i])
-        return (
-            f"this frame's own rim (centre {cx:.1f}, {cy:.1f} px, radius {r:.1f} px) is not the "
-            "recording's: measured with its own rim (has the camera moved? --rim frame measures "
-            "every frame with its own)"
-        )
-    return ""
-
-
-def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str = "") -> FrameResult:
-    """Frame ``i`` of a batched :class:`SoftEstimate` as the common :class:`FrameResult`
-    (degrees, image px, the overlay geometry). ``searched``: the rim radii searched, for the
-    message of a frame without a rim."""
-    p = out.params[i].astype(float)
-    status = Status.from_code(int(out.status[i]))
-    cx, cy, r = float(p[0]), float(p[1]), float(p[2])
-    if status == Status.NO_WHEEL:
-        rim = f" (rim radii searched: {searched})" if searched else ""
-        return failed(name, Status.NO_WHEEL, Status.NO_WHEEL.message + rim)
-    if status == Status.FIT_FAILED or not np.all(np.isfinite(p)):
-        return FrameResult(
-            image=name,
-            status=Status.FIT_FAILED,
-            center_x_px=cx,
-            center_y_px=cy,
-            radius_px=r,
-            message=Status.FIT_FAILED.message,
-        )
-    sign = travel_sign(rig.travel)
-    a, b = out.ends_uv_px[i].astype(float)
-    ax, ay = (float(t) for t in from_wheel_frame(a[0], a[1], cx, cy, rig.travel))
-    bx, by = (float(t) for t in from_wheel_frame(b[0], b[1], cx, cy, rig.travel))
-    keep = out.boundary_weight[i] > 0.25
-    boundary = np.stack([out.boundary_x_px[i][keep], out.boundary_y_px[i][keep]], -1)
-    k, bb = float(p[3]), float(p[4])
-    line = None
-    if status == Status.OK:
-        u0, u1 = float(b[0]), float(a[0])
-        line = (
-            (cx + sign * u0, cy + k * u0 + bb),
-            (cx + sign * u1, cy + k * u1 + bb),
-        )
-    overlay = Overlay(
-        centre_px=(cx, cy),
-        radius_px=r,
-        boundary_px=boundary,
-        line_px=line,
-        a_px=(ax, ay) if status == Status.OK else None,
-        b_px=(bx, by) if status == Status.OK else None,
-    )
-    rim_note = _rim_message(out, i)
-    if status == Status.NO_CONTACT:
-        result = no_contact(name, (cx, cy), r, overlay)
-        return (
-            dataclasses.replace(result, message=f"{result.message}; {rim_note}")
-            if rim_note
-            else result
-        )
-    # An implausible frame keeps its numbers (for review) under a non-ok status and its reason.
-    why = check_message(int(out.check[i])) if status == Status.IMPLAUSIBLE else ""
-    return FrameResult(
-        image=name,
-        status=status,
-        sinkage_mm=float(out.sinkage_mm[i]),
-        sinkage_std_mm=float(out.sinkage_std_mm[i]),
-        theta1_deg=float(np.degrees(out.theta1_rad[i])),
-        theta1_std_deg=float(np.degrees(out.theta1_std_rad[i])),
-        theta2_deg=float(np.degrees(out.theta2_rad[i])),
-        theta2_std_deg=float(np.degrees(out.theta2_std_rad[i])),
-        center_x_px=cx,
-        center_y_px=cy,
-        radius_px=r,
-        overlay=overlay,
-        message="; ".join(m for m in (why, rim_note) if m),
-    )
+    recording = SoftRecording(rim=rim, uncertainty=uncertainty, segmenter=segmenter)
+    return recording(images, rig, names, pad_to=pad_to)

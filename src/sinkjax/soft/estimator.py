@@ -17,13 +17,15 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ..geometry import travel_sign
 from ..rig import Rig, SegmentationParams, rim_hint_range_px
 from ..status import Status
+from .adaptive import default_segmenter
 from .checks import plausibility
 from .fit import build_evidence, fit
 from .hough import Circle, hough_rim
 from .model import end_point, measurements
 from .outline import Outline, extract_outline, refine_outline
 from .rim import RecordingRim, RimChoice, choose_circle
-from .segmentation import Rect, soft_open, wheel_mask
+from .segmentation import Rect, soft_open
+from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
@@ -174,6 +176,7 @@ def measure(
     settings: SoftSettings | None = None,
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
     rim: RecordingRim | None = None,
+    segmenter: Segmenter | None = None,
 ) -> SoftEstimate:
     """The soft method on one image in [0, 1].
 
@@ -188,10 +191,13 @@ def measure(
     are the method's tuning settings, array leaves (not static: a new value does not recompile).
     ``rim_range_px``: the rim radii to search (px; may be traced), None for the default
     fractions of the image size. ``rim``: the recording's rim circle (``soft.rim``; traced), held
-    as a strong prior; None: the frame's own rim.
+    as a strong prior; None: the frame's own rim. ``segmenter`` (a
+    :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the default with the
+    thresholds ``seg`` (:func:`~sinkjax.soft.adaptive.default_segmenter`: the paper's H/S test
+    on a coloured wheel, intensity/chroma/texture on a black one).
     Never raises for image content: problems are reported in ``status``.
     """
-    mask = wheel_mask(image, seg, rect)
+    mask = (default_segmenter(seg) if segmenter is None else segmenter)(image, rect)
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
     return measure_from_mask(
@@ -219,8 +225,8 @@ def measure_from_mask(
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
-    ``measure`` is ``measure_from_mask(image, wheel_mask(image, seg, rect))``; a learned
-    segmenter (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
+    ``measure`` is ``measure_from_mask(image, segmenter(image, rect))``; a segmenter outside
+    JAX (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
     outline is located on its colours. Keyword arguments as for :func:`measure`.
     Raises ValueError if the shapes disagree.
     """

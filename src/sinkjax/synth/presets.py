@@ -11,11 +11,22 @@ import numpy as np
 
 from ..geometry import travel_sign
 from .hard import HARD_PRESETS, HOLLOW_AHEAD, harden, with_hollow_ahead
+from .materials import MATERIAL_PRESETS, repaint
 from .scene import Scene, hsv_rgb as _hsv, hue_gap_deg as _hue_gap, mirrored, surface_y_px
 from .truth import boundary_points, n_rim_crossings, true_geometry
 
-# The hard presets (synth/hard.py) come last; the others render as they always have.
-PRESETS: tuple[str, ...] = ("clean", "full", "shading", "dust", "cast", "lowlight", *HARD_PRESETS)
+# The hard presets (synth/hard.py) and the black and metal wheels (synth/materials.py) come
+# last; the others render as they always have.
+PRESETS: tuple[str, ...] = (
+    "clean",
+    "full",
+    "shading",
+    "dust",
+    "cast",
+    "lowlight",
+    *HARD_PRESETS,
+    *MATERIAL_PRESETS,
+)
 TERRAINS: tuple[str, ...] = ("flat", "bulldozed", "raised", "hollow", "rough")
 
 # Hue ranges (degrees) of the wheel paints; red straddles 0/360 on purpose (hue wrap-around).
@@ -42,6 +53,8 @@ def camera_setup(rng: np.random.Generator, width: int, height: int, preset: str)
         raise ValueError(f"preset must be one of {PRESETS}, got {preset!r}")
     if preset in HARD_PRESETS:
         return harden(rng, camera_setup(rng, width, height, "full"), preset)
+    if preset in MATERIAL_PRESETS:
+        return repaint(rng, camera_setup(rng, width, height, "full"), preset)
     if width < 64 or height < 64:
         raise ValueError(f"image must be at least 64x64 px, got {width}x{height}")
     u = rng.uniform

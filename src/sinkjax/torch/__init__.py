@@ -10,6 +10,8 @@ Optional: needs the ``torch`` extra (``pip install 'sinkjax[torch]'``). Images a
   theta2 and their one-sigma from the JAX estimator, as torch tensors whose backward is JAX's VJP
   (through the implicit-differentiated fit). Tensors cross by DLPack.
 - :func:`lighting_augmentation`: kornia photometric augmentations for robustness studies.
+- :class:`TorchColourSegmenter`, :func:`train_torch`: a learned segmenter trained from frame
+  labels through the bridge (the torch counterpart of :mod:`sinkjax.learn`).
 """
 
 from __future__ import annotations
@@ -32,6 +34,12 @@ from .bridge import (
     TorchEstimate as TorchEstimate,
     measure_torch as measure_torch,
 )
+from .learn import (
+    TorchColourSegmenter as TorchColourSegmenter,
+    imitate_torch as imitate_torch,
+    label_loss as label_loss,
+    train_torch as train_torch,
+)
 from .segmentation import (
     RgbToHsi as RgbToHsi,
     SoftHSISegmenter as SoftHSISegmenter,
@@ -48,11 +56,15 @@ __all__ = [
     "SinkageFromMask",
     "SoftHSISegmenter",
     "Status",
+    "TorchColourSegmenter",
     "TorchEstimate",
+    "imitate_torch",
+    "label_loss",
     "lighting_augmentation",
     "measure_torch",
     "rgb_to_hsi",
     "smooth_mask",
     "soft_hsi_mask",
     "soft_open",
+    "train_torch",
 ]

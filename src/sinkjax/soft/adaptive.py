@@ -1,0 +1,163 @@
+"""The default segmenter: hue and saturation for a coloured wheel, intensity, chroma and texture
+for a black or bare-metal one, chosen per frame from the confidence rectangle.
+
+The paper's H/S test needs a wheel with colour. A black (rubber, 3D-printed) or bare-aluminium
+wheel has a saturation at the noise level (S_w ~ 0.04), so its H_w is noise and the H/S bands
+select noise. The rectangle's mean chroma vector (saturation times the unit hue direction,
+averaged: noise averages out, a real tint does not) says which case a frame is:
+
+- at least ``min_wheel_chroma``: the paper's test, exactly
+  :func:`~sinkjax.soft.segmentation.wheel_mask` (the same numbers as before);
+- below: a soft distance in a small feature space, each feature scaled by the rectangle's own
+  statistics (the paper's P_a/P_d generalised). Intensity: the wheel is the side of a threshold
+  between the rectangle's mean I_w and the frame's mean I_ref (darker for a black wheel,
+  brighter for a metal one), at ``p_int`` of the way from I_w to I_ref. Chroma: the opponent
+  colour (R - (G + B)/2, sqrt(3)/2 (G - B)) stays within ``p_chroma`` times a floor of the
+  rectangle's mean (brown soil, however dark, has chroma). Texture: the local intensity spread
+  (the smallest of four one-sided windows, so that an edge does not count as texture on either
+  side) stays under ``p_tex`` times the rectangle's (sand has grain, rubber and metal do not).
+
+The switch is a ``jnp.where`` on traced values: one compiled function serves every wheel. The
+branch not taken gets no gradient; the thresholds and temperatures are array leaves.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
+from .colour import rgb_to_hsi
+from .segmentation import Rect, smooth, wheel_mask
+from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Segmenter, rect_weight
+
+_SQRT3_2 = 0.8660254037844386
+_TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
+
+
+def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
+    # Mean over every size x size window lying inside ``a`` (index = the window's top-left).
+    s = jax.lax.reduce_window(a, 0.0, jax.lax.add, (size, size), (1, 1), "VALID")
+    return s / float(size * size)
+
+
+def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float[Array, "H W"]:
+    """Local intensity spread (std), the smallest over the four size x size windows that have
+    the pixel at a corner (the image edge-replicated): a pixel next to an edge keeps the spread
+    of its own side."""
+    k = size - 1
+    p = jnp.pad(intensity, k, mode="edge")
+    mean = _box_mean(p, size)
+    var = jnp.maximum(_box_mean(p * p, size) - mean * mean, 0.0)
+    h, w = intensity.shape
+    # var[a, b] is the window whose top-left pixel is (a - k, b - k): the pixel's own windows
+    # start at offsets 0 (pixel bottom/right) and k (pixel top/left).
+    corners = [var[dy : dy + h, dx : dx + w] for dy in (0, k) for dx in (0, k)]
+    v = jnp.min(jnp.stack(corners), axis=0)
+    # Double where: sqrt has an infinite derivative at 0 (a flat window).
+    pos = v > 1e-12
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
+
+
+def wheel_chroma(image: Float[Array, "H W 3"], weight: Float[Array, "H W"]) -> Float[Array, ""]:
+    """The length of the mean (S cos H, S sin H) over ``weight``: the wheel's colourfulness in
+    saturation units, with the hue noise of a grey wheel averaged out."""
+    h_deg, s, _ = rgb_to_hsi(image)
+    rad = jnp.radians(h_deg)
+    total = jnp.maximum(jnp.sum(weight), 1.0)
+    c = jnp.sum(weight * s * jnp.cos(rad)) / total
+    d = jnp.sum(weight * s * jnp.sin(rad)) / total
+    n2 = c * c + d * d
+    pos = n2 > 1e-24
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, n2, 1.0)), 0.0)
+
+
+class AdaptiveSegmenter(Segmenter):
+    """The default segmenter (module docstring): the paper's H/S mask for a coloured wheel, an
+    intensity/chroma/texture mask for a black or metal one; no setting needed for either.
+
+    ``seg``: the H/S test's parameters. The grey branch's leaves: ``p_int`` (fraction of the way
+    from the wheel's intensity to the frame's mean where the threshold sits), ``t_int`` (its
+    sigmoid width, same units), ``p_chroma`` and ``chroma_floor`` (the chroma radius is
+    ``p_chroma * max(rectangle chroma spread, chroma_floor)``, RGB units), ``t_chroma``,
+    ``p_tex`` and ``tex_floor`` (texture limit ``p_tex * max(rectangle texture, tex_floor)``,
+    intensity units), ``t_tex``; ``min_wheel_chroma`` the switch (not differentiable).
+    """
+
+    seg: SegmentationParams = SegmentationParams()
+    min_wheel_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=MIN_WHEEL_CHROMA)
+    p_a_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.6)
+    int_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.03)
+    p_d_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.6)
+    t_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.08)
+    p_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
+    chroma_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.012)
+    t_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.008)
+    p_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=2.0)
+    tex_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.006)
+    t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
+
+    def coloured(self, image: Float[Array, "H W 3"], rect: Rect) -> Bool[Array, ""]:
+        """True (as a 0-d bool array) when the wheel has enough colour for the H/S test."""
+        weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
+        return wheel_chroma(image, weight) >= self.min_wheel_chroma
+
+    def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
+        return jnp.where(self.coloured(image, rect), FEATURES_HUE_SAT, FEATURES_INTENSITY).astype(
+            jnp.int32
+        )
+
+    def grey_mask(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
+        """The intensity/chroma/texture mask alone (the branch for a wheel without colour)."""
+        weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
+        total = jnp.maximum(jnp.sum(weight), 1.0)
+
+        def rect_mean(a: Array) -> Array:
+            return jnp.sum(weight * a) / total
+
+        r, g, b = image[..., 0], image[..., 1], image[..., 2]
+        # Smoothed features (sigma ~ 1 px): sensor noise would otherwise salt a dark wheel's
+        # chroma; the blur is symmetric, so edges stay where they are.
+        intensity = smooth((r + g + b) / 3.0)
+        q1 = smooth(r - 0.5 * (g + b))
+        q2 = smooth(_SQRT3_2 * (g - b))
+        tex = texture((r + g + b) / 3.0)
+
+        i_w = rect_mean(intensity)
+        # +1: the wheel is darker than the frame on average (black), -1: brighter (metal). The
+        # wheel is everything on its side of a threshold scaled from I_w, the paper's P_a/P_d:
+        # a black wheel's shaded side is darker still, a metal one's highlights brighter.
+        dark = i_w <= jnp.mean(intensity)
+        side = jnp.where(dark, 1.0, -1.0)
+        edge = jnp.where(dark, self.p_a_int * i_w + self.int_floor, self.p_d_int * i_w)
+        m_int = jax.nn.sigmoid(side * (edge - intensity) / (self.t_int * edge))
+
+        dq1, dq2 = q1 - rect_mean(q1), q2 - rect_mean(q2)
+        spread_q = jnp.sqrt(rect_mean(dq1 * dq1 + dq2 * dq2) + 1e-12)
+        radius_q = self.p_chroma * jnp.maximum(spread_q, self.chroma_floor)
+        dist2 = dq1 * dq1 + dq2 * dq2
+        pos = dist2 > 1e-24
+        dist_q = jnp.where(pos, jnp.sqrt(jnp.where(pos, dist2, 1.0)), 0.0)
+        m_chroma = jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma)
+
+        limit_tex = self.p_tex * jnp.maximum(rect_mean(tex), self.tex_floor)
+        # Only a bright wheel needs texture (grey sand can be as bright as shaded metal); on a
+        # dark one it would only cut away the thin grousers.
+        m_tex = jnp.where(dark, 1.0, jax.nn.sigmoid((limit_tex - tex) / self.t_tex))
+        return m_int * m_chroma * m_tex
+
+    def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
+        return jnp.where(
+            self.coloured(image, rect),
+            wheel_mask(image, self.seg, rect),
+            self.grey_mask(image, rect),
+        )
+
+
+def default_segmenter(seg: SegmentationParams) -> Segmenter:
+    """The soft method's segmenter when none is given, with a rig's H/S thresholds ``seg``:
+    :class:`AdaptiveSegmenter`, which on a coloured wheel is the paper's H/S mask bit for bit
+    (``experiments/black_wheels.py`` checks the estimates) and also sees black wheels."""
+    return AdaptiveSegmenter(seg)

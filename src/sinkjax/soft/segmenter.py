@@ -1,0 +1,87 @@
+"""The segmenter interface: anything that maps an image and its confidence rectangle to a soft
+wheel mask.
+
+A :class:`Segmenter` is an ``eqx.Module`` whose array leaves are its trainable parameters (so
+``jax.grad`` of any loss of the mask, or of the whole fitted measurement through
+:func:`sinkjax.measure`, reaches them) and whose static fields are its structure. The estimator,
+calibration and training take any segmenter; :class:`ThresholdSegmenter` is the paper's H/S
+range test (:func:`~sinkjax.soft.segmentation.wheel_mask`) behind this interface.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from ..rig import SegmentationParams, rect_problem
+from .segmentation import Rect, wheel_mask
+
+# Codes for which features a segmenter separated wheel from soil with, per frame (the run
+# summary shows them). A segmenter that does not choose reports FEATURES_LEARNED.
+FEATURES_HUE_SAT = 0
+FEATURES_INTENSITY = 1
+FEATURES_LEARNED = 2
+FEATURE_NAMES = {
+    FEATURES_HUE_SAT: "hue+saturation",
+    FEATURES_INTENSITY: "intensity+texture",
+    FEATURES_LEARNED: "learned",
+}
+
+
+def rect_weight(
+    rect: Rect, height: int, width: int, dtype: jnp.dtype | type
+) -> Float[Array, "H W"]:
+    """1 inside the confidence rectangle (x, y, w, h), 0 outside; a tuple is checked (raises
+    ValueError if it does not lie inside the image), an int array of 4 may be traced."""
+    if isinstance(rect, tuple | list):
+        problem = rect_problem(tuple(rect), height, width)
+        if problem is not None:
+            raise ValueError(problem)
+    x0, y0, w0, h0 = (jnp.asarray(rect[i], jnp.int32) for i in range(4))
+    rows = jnp.arange(height, dtype=jnp.int32)
+    cols = jnp.arange(width, dtype=jnp.int32)
+    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
+    return inside.astype(dtype)
+
+
+class Segmenter(eqx.Module):
+    """A soft wheel segmenter: ``segmenter(image, rect) -> mask``.
+
+    ``image`` is (H, W, 3) RGB in [0, 1]; ``rect`` the confidence rectangle (x, y, w, h) in px,
+    a tuple of ints (static) or an int array of 4 (traced, see
+    :func:`~sinkjax.soft.segmentation.confidence_means`); the result is (H, W) in [0, 1],
+    1 = wheel. Implementations must be jit-able and vmap-able, branch on no traced value in
+    Python, and have finite gradients with respect to every array leaf.
+    """
+
+    @abc.abstractmethod
+    def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
+        raise NotImplementedError
+
+    def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
+        """Which features separate wheel from soil in this frame (a ``FEATURES_*`` code).
+
+        A fixed-form segmenter reports its one choice; learned ones report FEATURES_LEARNED.
+        """
+        del image, rect
+        return jnp.asarray(FEATURES_LEARNED, jnp.int32)
+
+
+class ThresholdSegmenter(Segmenter):
+    """The paper's H/S range test as a soft mask: exactly :func:`wheel_mask` with ``seg``.
+
+    ``seg``'s fields (P_d/P_a for hue and saturation, the temperatures) are the leaves that
+    calibration tunes.
+    """
+
+    seg: SegmentationParams = SegmentationParams()
+
+    def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
+        return wheel_mask(image, self.seg, rect)
+
+    def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
+        del image, rect
+        return jnp.asarray(FEATURES_HUE_SAT, jnp.int32)

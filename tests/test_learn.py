@@ -1,0 +1,184 @@
+"""Learned segmenters (sinkjax.learn): gradients through the fit against finite differences,
+save/load round trip and clear errors for bad files, training lowers the loss, the estimator and
+the command line use a saved model. Rendered frames (sinkjax.synth) are the reference."""
+
+from __future__ import annotations
+
+import csv
+import functools
+import json
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sinkjax import learn as L
+from sinkjax.app.cli import main
+from sinkjax.rig import save_rig
+from sinkjax.soft.batch import estimate_batch
+from sinkjax.soft.estimator import measure_from_mask
+from sinkjax.soft.segmenter import Segmenter
+from sinkjax.status import Status
+
+W, H = 240, 180
+
+
+@functools.cache
+def recording(preset: str = "full", seed: int = 11, n: int = 3) -> L.LabelledRecording:
+    return L.synthetic_recording(n, seed=seed, preset=preset, width=W, height=H)
+
+
+@functools.cache
+def started(kind: str) -> L.LearnedSegmenter:
+    """A model that imitated the exact masks: its fit measures every frame."""
+    batches = L.frame_batches([recording()])
+    seg, ce = L.imitate(L.build(kind, key=1), batches, steps=120, learning_rate=2e-2)
+    assert ce < 0.15
+    return seg
+
+
+def _directional(seg: L.LearnedSegmenter, batch: L.FrameBatch, d, eps: float) -> float:
+    params, static = eqx.partition(seg, eqx.is_array)
+
+    def loss(t: float) -> float:
+        moved = jax.tree_util.tree_map(lambda p, v: p.astype(jnp.float64) + t * v, params, d)
+        return float(L.loss_and_grad(eqx.combine(moved, static), batch, 0.1, 2.0)[0])
+
+    return (loss(eps) - loss(-eps)) / (2 * eps)
+
+
+@pytest.mark.parametrize("kind", ["mlp", "cnn"])
+def test_frame_loss_gradient_matches_finite_differences(kind: str) -> None:
+    seg = started(kind)
+    batch = L.frame_batches([recording()])[0]
+    as64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64) if eqx.is_array(x) else x, seg)
+    value, grad, seen = L.loss_and_grad(as64, batch, 0.1, 2.0)
+    assert np.all(np.asarray(seen[:, 3]) == Status.OK.code)  # every frame measures
+    assert float(value) > 0
+    params = eqx.filter(as64, eqx.is_array)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        d = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape)), params)
+        ad = sum(
+            float(jnp.sum(g * v))
+            for g, v in zip(
+                jax.tree_util.tree_leaves(grad), jax.tree_util.tree_leaves(d), strict=True
+            )
+        )
+        fd = _directional(as64, batch, d, 1e-6)
+        np.testing.assert_allclose(ad, fd, rtol=5e-3, atol=1e-6 * abs(fd) + 1e-8)
+
+
+def test_save_load_round_trip(tmp_path: Path) -> None:
+    image = jnp.asarray(recording().frames.images[0], jnp.float64) / 255.0
+    rect = recording().rig.confidence_rect
+    for kind in ("mlp", "cnn"):
+        seg = L.build(kind, key=3, **({"hidden": 8} if kind == "mlp" else {"channels": 6}))
+        path = L.save_segmenter(tmp_path / f"{kind}.seg", seg, report={"steps": 7})
+        back = L.load_segmenter(path)
+        assert type(back) is type(seg) and back.hyper == seg.hyper
+        for a, b in zip(
+            jax.tree_util.tree_leaves(seg), jax.tree_util.tree_leaves(back), strict=True
+        ):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(seg(image, rect)), np.asarray(back(image, rect)))
+        header = json.loads(path.read_bytes().split(b"\n", 1)[0])
+        assert header["kind"] == kind and header["report"] == {"steps": 7}
+
+
+def test_bad_segmenter_files_give_clear_errors(tmp_path: Path) -> None:
+    good = L.save_segmenter(tmp_path / "good.seg", L.build("mlp", key=0))
+    data = good.read_bytes()
+    head, payload = data.split(b"\n", 1)
+    header = json.loads(head)
+
+    def write(name: str, content: bytes) -> Path:
+        (tmp_path / name).write_bytes(content)
+        return tmp_path / name
+
+    cases = {
+        "missing": (tmp_path / "nope.seg", "does not exist"),
+        "text": (write("a.seg", b"hello world"), "no header line"),
+        "png": (write("b.seg", b"\x89PNG\r\n\x1a\n" + payload), "not a JSON header"),
+        "foreign": (write("c.seg", b'{"format": "x"}\n' + payload), "does not say format"),
+        "version": (
+            write("d.seg", json.dumps(header | {"version": 99}).encode() + b"\n" + payload),
+            "version 99",
+        ),
+        "kind": (
+            write("e.seg", json.dumps(header | {"kind": "gan"}).encode() + b"\n" + payload),
+            "unknown segmenter kind 'gan'",
+        ),
+        "hyper": (
+            write(
+                "f.seg", json.dumps(header | {"hyper": {"hidden": 32}}).encode() + b"\n" + payload
+            ),
+            "truncated or corrupt",
+        ),
+        "truncated": (write("g.seg", data[: len(data) - 40]), "truncated or corrupt"),
+        "long": (write("h.seg", data + b"\0" * 16), "the file is corrupt"),
+    }
+    for name, (path, words) in cases.items():
+        with pytest.raises(L.SegmenterFileError, match=words):
+            L.load_segmenter(path)
+        assert name
+
+
+def test_training_a_few_steps_lowers_the_loss() -> None:
+    batches = L.frame_batches([recording()])
+    # A good model with its mask shrunk (logits - 2): one frame fails, the others read deep.
+    good = started("mlp")
+    seg = eqx.tree_at(lambda s: s.biases[-1], good, good.biases[-1] - 2.0)
+    res = L.train(seg, batches, steps=12, learning_rate=1e-3, eval_every=3, patience=4)
+    assert res.train_after.loss < 0.5 * res.train_before.loss
+    assert res.train_after.failed < res.train_before.failed
+    assert res.best_step > 0
+    # The returned model is the best one scored, and its score is what `score` says.
+    assert L.score(res.segmenter, batches).loss == pytest.approx(res.train_after.loss)
+
+
+def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path) -> None:
+    rec = recording()
+    seg = started("mlp")
+    assert isinstance(seg, Segmenter)
+    names = list(rec.frames.names)
+    # Each frame's own rim: comparable with measure_from_mask on the frame alone.
+    rows = estimate_batch(list(rec.frames.images), rec.rig, names, segmenter=seg, rim="frame")
+    image = jnp.asarray(rec.frames.images[0], jnp.float64) / 255.0
+    direct = measure_from_mask(
+        image,
+        seg(image, rec.rig.confidence_rect),
+        travel=rec.rig.travel,
+        wheel_radius_mm=rec.rig.wheel_radius_mm,
+    )
+    assert rows[0].status == Status.OK
+    assert rows[0].sinkage_mm == pytest.approx(float(direct.sinkage_mm), rel=1e-9)
+    truth = rec.frames.targets[:, 0]
+    # The recording's rim (the default) measures as well.
+    rows = estimate_batch(list(rec.frames.images), rec.rig, names, segmenter=seg)
+    assert np.median(np.abs([r.sinkage_mm for r in rows] - truth) / truth) < 0.10
+
+    # sinkjax train on a recording on disk, then sinkjax estimate --segmenter with its output.
+    from PIL import Image
+
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    save_rig(rec.rig, folder / "rig.toml")
+    with (folder / "LABELS.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["image", "sinkage_mm", "theta1_deg", "theta2_deg"])
+        for i, t in enumerate(rec.frames.targets):
+            Image.fromarray(rec.frames.images[i]).save(folder / f"f{i}.png")
+            w.writerow([f"f{i}.png", *(f"{v:.4f}" for v in t)])
+    model = tmp_path / "model.seg"
+    args = ["train", str(folder / "LABELS.csv"), "--out", str(model), "--steps", "2"]
+    assert main([*args, "--held-out", "0", "--eval-every", "1"]) == 0
+    assert L.load_segmenter(model).kind == "mlp"
+    out = tmp_path / "results.csv"
+    assert main(["estimate", str(folder), "--segmenter", str(model), "--out", str(out)]) == 0
+    assert len(out.read_text().splitlines()) == 1 + len(truth)
+    (tmp_path / "bad.seg").write_bytes(b"junk")
+    assert main(["estimate", str(folder), "--segmenter", str(tmp_path / "bad.seg")]) == 2
