@@ -17,7 +17,7 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
   (the smallest of four one-sided windows, so that an edge does not count as texture on either
   side) stays under ``p_tex`` times the rectangle's (sand has grain, rubber and metal do not).
 
-The switch is a ``jnp.where`` on traced values: one compiled function serves every wheel. The
+The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
 """
 
@@ -149,15 +149,17 @@ class AdaptiveSegmenter(Segmenter):
         return m_int * m_chroma * m_tex
 
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
-        return jnp.where(
+        # lax.cond: per frame on a CPU only the branch taken runs (the grey features cost
+        # about 40 % of a frame); under vmap it becomes a select of both, as jnp.where would.
+        return jax.lax.cond(
             self.coloured(image, rect),
-            wheel_mask(image, self.seg, rect),
-            self.grey_mask(image, rect),
+            lambda: wheel_mask(image, self.seg, rect),
+            lambda: self.grey_mask(image, rect),
         )
 
 
 def default_segmenter(seg: SegmentationParams) -> Segmenter:
     """The soft method's segmenter when none is given, with a rig's H/S thresholds ``seg``:
-    :class:`AdaptiveSegmenter`, which on a coloured wheel is the paper's H/S mask bit for bit
-    (``experiments/black_wheels.py`` checks the estimates) and also sees black wheels."""
+    :class:`AdaptiveSegmenter`, which on a coloured wheel is the paper's H/S mask (the same
+    estimates to float rounding) and also sees black wheels."""
     return AdaptiveSegmenter(seg)
