@@ -216,9 +216,9 @@ def write(
     fc = 1.0 - none["statuses"].get("no_contact", 0) / none["frames"] if none["frames"] else None
     lines += [
         "",
-        f"False contact on the true no-contact frames (any status but `no_contact`): {_fmt(fc, 2)}.",
-        "Coverage counts `ok` and `no_contact` rows (a `no_contact` row reports 0 with the sigma of "
-        "the sinkage it could hide).",
+        "False contact on the true no-contact frames (any status but `no_contact`): "
+        f"{_fmt(fc, 2)}. Coverage counts `ok` and `no_contact` rows (a `no_contact` row reports 0 "
+        "with the sigma of the sinkage it could hide).",
         "",
     ]
     (RESULTS / f"shallow_contact{tag}.md").write_text("\n".join(lines))
