@@ -182,7 +182,8 @@ def hidden_contact_std(
     """
     r = jnp.maximum(r_px, 1.0)
     z_max = inner_px + (0.5 * settings.min_boundary_points) ** 2 / (2.0 * r)
-    angle = jnp.arccos(jnp.clip(1.0 - z_max / r, -1.0, 1.0 - 1e-6))
+    # Inside (-1, 1): arccos has an infinite derivative at both ends (no wheel: r ~ 0).
+    angle = jnp.arccos(jnp.clip(1.0 - z_max / r, -1.0 + 1e-6, 1.0 - 1e-6))
     z_mm = z_max * wheel_radius_mm / r
     return jnp.stack([z_mm / jnp.sqrt(3.0), angle / jnp.sqrt(2.0), angle / jnp.sqrt(2.0)])
 

@@ -133,7 +133,11 @@ def boundary_side(
     at = jnp.searchsorted(us, jnp.minimum(u, zero), side="left")
     to = jnp.searchsorted(us, jnp.maximum(u, zero), side="right")
     connected = (cg[to] - cg[at]) < 0.5
-    return deep | (dip & connected)
+    # Where the soil is clearly inside the rim the dip adds only the corners where soil edge
+    # and rim edge meet, which smoothing rounds and a thin wedge of background shifts: those
+    # stay out, as the ends' tangents keep ``end_clearance_px`` from them.
+    shallow = jnp.sum(jnp.where(deep, wc, 0.0)) < s.min_boundary_points
+    return deep | (shallow & dip & connected)
 
 
 def build_evidence(
@@ -173,6 +177,9 @@ def build_evidence(
     rim_like = w * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
     inner_px = inner_margin_px(u, v, dr, rim_like * is_rim.astype(dt), circle.r_px, rim_weight, s)
     inside = boundary_side(u, dr, lower, inner_px, s)
+    # The margin the boundary actually starts at (the dip's only for a shallow contact).
+    deep_weight = jnp.sum(jnp.where((dr < -s.rim_band_in_px) & (lower > 0.1), lower, 0.0))
+    inner_px = jnp.where(deep_weight < s.min_boundary_points, inner_px, s.rim_band_in_px)
     w_rim = rim_like * (is_rim & ~inside).astype(dt)
     w_line = lower * inside.astype(dt)
 

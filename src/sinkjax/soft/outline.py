@@ -207,12 +207,6 @@ def refine_outline(
     )
     # Trapezoid integral of the profile from the window's start: the edge's offset from -half.
     t_edge = -half + step * (jnp.sum(proj, 1) - 0.5 * (proj[:, 0] + proj[:, -1]))
-    # The integral is a ruler only for a mix of two colours. A third colour between them (a thin
-    # wedge of background between the rim and the soil) leaves the line from c_in to c_out, and
-    # would move the edge by its width: such points keep the mask's position.
-    off_line = samples - c_out[:, None] - proj[..., None] * diff[:, None]
-    excursion = jnp.max(jnp.sum(off_line * off_line, -1), 1) / jnp.where(ok, contrast2, 1.0)
-    ok = ok & (excursion < 0.25**2)
     shift = jnp.where(ok, jnp.clip(t_edge, -2.0, 2.0), 0.0)
     return eqx.tree_at(
         lambda o: (o.x_px, o.y_px),
