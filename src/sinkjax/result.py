@@ -47,15 +47,25 @@ class FrameResult(eqx.Module):
 
 
 def no_contact(
-    image: str, centre_px: Point, radius_px: float, overlay: Overlay | None
+    image: str,
+    centre_px: Point,
+    radius_px: float,
+    overlay: Overlay | None,
+    std: tuple[float, float, float] | None = None,
 ) -> FrameResult:
-    """docs/conventions.md §1: no contact is sinkage 0 and both angles 0, with no sigma."""
+    """docs/conventions.md §1: no contact is sinkage 0 and both angles 0. ``std``: one sigma of
+    (sinkage mm, theta1 deg, theta2 deg), how much could hide below what the image shows; None
+    for a method without one."""
+    s = (None, None, None) if std is None else std
     return FrameResult(
         image=image,
         status=Status.NO_CONTACT,
         sinkage_mm=0.0,
+        sinkage_std_mm=s[0],
         theta1_deg=0.0,
+        theta1_std_deg=s[1],
         theta2_deg=0.0,
+        theta2_std_deg=s[2],
         center_x_px=centre_px[0],
         center_y_px=centre_px[1],
         radius_px=radius_px,

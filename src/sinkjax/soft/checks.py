@@ -179,7 +179,9 @@ def plausibility(
     i_b = jnp.argmin(jnp.where(present, u, jnp.inf))
     gap = jnp.maximum(p[2] - d[i_a], p[2] - d[i_b])
     dist = jnp.abs(p[4]) / jnp.sqrt(p[3] ** 2 + 1.0)
-    chord = 2.0 * jnp.sqrt(jnp.maximum(p[2] ** 2 - dist**2, 1.0)) / jnp.sqrt(p[3] ** 2 + 1.0)
+    # Edges count as boundary only ``ev.inner_px`` inside the rim: the chord of that circle.
+    r_in = p[2] - ev.inner_px.astype(dt)
+    chord = 2.0 * jnp.sqrt(jnp.maximum(r_in**2 - dist**2, 1.0)) / jnp.sqrt(p[3] ** 2 + 1.0)
     chord_ratio = (u[i_a] - u[i_b]) / chord
 
     ring = _ring_disagreement(mask, p, ev.sign, contact)

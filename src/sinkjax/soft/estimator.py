@@ -39,7 +39,9 @@ class SoftEstimate(eqx.Module):
     ``params`` are the fitted model (cx, cy, r px; k, b; end lines, see ``soft.model``) and
     ``params_std`` their sigmas before the uncertainty model's scaling; ``status`` is a
     :class:`sinkjax.Status` ``code``; the boundary arrays are the outline points and their
-    boundary weights (for overlays). For no contact the measurements are 0 (docs/conventions.md §1).
+    boundary weights (for overlays). For no contact the measurements are 0 and the sigmas say how
+    much sinkage (and angle) could hide below what the image shows (docs/conventions.md §1,
+    :func:`hidden_contact_std`).
     """
 
     sinkage_mm: Float[Array, ""]
@@ -143,6 +145,7 @@ def finish(
         ),
     )
     zero_if_no_contact = jnp.where(contact, 1.0, 0.0)
+    std = jnp.where(contact, std, hidden_contact_std(p[2], ev.inner_px, wheel_radius_mm, s))
     return SoftEstimate(
         sinkage_mm=est[0] * zero_if_no_contact,
         sinkage_std_mm=std[0],
@@ -162,6 +165,29 @@ def finish(
         own_rim_px=jnp.stack([choice.own.cx_px, choice.own.cy_px, choice.own.r_px]),
         rim_support=choice.circle.support,
     )
+
+
+def hidden_contact_std(
+    r_px: Float[Array, ""],
+    inner_px: Float[Array, ""],
+    wheel_radius_mm: float | Float[Array, ""],
+    settings: SoftSettings,
+) -> Float[Array, " 3"]:
+    """One sigma of (sinkage mm, theta1 rad, theta2 rad) for a frame read as no contact.
+
+    The soil may still touch the rim, too little to be seen: an edge counts as soil only
+    ``inner_px`` inside the rim (``fit.inner_margin_px``), and a contact needs
+    ``min_boundary_points`` columns of it, so a sinkage up to z_max = inner_px + (n / 2)^2 / (2 r)
+    can hide. Reported as 0, the sinkage's error is then at most z_max; with no reason to prefer
+    any depth below it, its root mean square is z_max / sqrt(3) (uniform on [0, z_max]), and
+    that of each angle (theta ~ sqrt(2 z0 / r) on flat ground) acos(1 - z_max / r) / sqrt(2).
+    """
+    r = jnp.maximum(r_px, 1.0)
+    z_max = inner_px + (0.5 * settings.min_boundary_points) ** 2 / (2.0 * r)
+    # Inside (-1, 1): arccos has an infinite derivative at both ends (no wheel: r ~ 0).
+    angle = jnp.arccos(jnp.clip(1.0 - z_max / r, -1.0 + 1e-6, 1.0 - 1e-6))
+    z_mm = z_max * wheel_radius_mm / r
+    return jnp.stack([z_mm / jnp.sqrt(3.0), angle / jnp.sqrt(2.0), angle / jnp.sqrt(2.0)])
 
 
 def measure(

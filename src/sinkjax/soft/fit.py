@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from ..geometry import equivalent_line
 from .hough import Circle
@@ -37,6 +37,107 @@ def _orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
     suv = jnp.sum(w * (u - um) * (v - vm))
     alpha = 0.5 * jnp.arctan2(2 * suv, suu - svv + 1e-12)
     return alpha, -jnp.sin(alpha) * um + jnp.cos(alpha) * vm
+
+
+def _window_means(
+    t: Float[Array, " K"], value: Float[Array, " K"], w: Float[Array, " K"], half: Array
+) -> tuple[Float[Array, " K"], Float[Array, " K"]]:
+    """Weighted mean of ``value`` over the points with weight ``w`` > 0 whose ``t`` lies within
+    ``half`` of each point's, and the weight summed there (cumulative sums over sorted ``t``)."""
+    key = jnp.where(w > 0, t, jnp.inf)
+    order = jnp.argsort(key)
+    ts = key[order]
+    zero = jnp.zeros(1, value.dtype)
+    cw = jnp.concatenate([zero, jnp.cumsum(w[order])])
+    cv = jnp.concatenate([zero, jnp.cumsum((w * value)[order])])
+    lo = jnp.searchsorted(ts, t - half, side="left")
+    hi = jnp.searchsorted(ts, t + half, side="right")
+    sw = cw[hi] - cw[lo]
+    return (cv[hi] - cv[lo]) / jnp.maximum(sw, 1e-9), sw
+
+
+def _weighted_median(a: Float[Array, " K"], w: Float[Array, " K"]) -> Float[Array, ""]:
+    """Weighted median of ``a`` over the points with ``w`` > 0 (inf when there are none)."""
+    a = jnp.where(w > 0, a, jnp.inf)
+    order = jnp.argsort(a)
+    cw = jnp.cumsum(w[order])
+    idx = jnp.clip(jnp.searchsorted(cw, 0.5 * cw[-1]), 0, a.shape[0] - 1)
+    return jnp.where(cw[-1] > 0, a[order][idx], jnp.inf)
+
+
+def inner_margin_px(
+    u: Float[Array, " K"],
+    v: Float[Array, " K"],
+    dr: Float[Array, " K"],
+    w_rim: Float[Array, " K"],
+    r_px: Float[Array, ""],
+    rim_weight: float | Float[Array, ""],
+    settings: SoftSettings,
+) -> Float[Array, ""]:
+    """How far inside the rim (px) the lower edge must lie, on average over a contact window, to
+    be soil rather than the rim edge's own error.
+
+    With the recording's rim (``rim_weight`` > 0: known to its sigma) the frame measures that
+    error itself: the mean of d - r over windows of the same length along its rim points, whose
+    spread (1.4826 x the weighted median of their absolute value; the known circle is the
+    reference, so its own error is in it) includes what averaging does not remove (JPEG blocks,
+    shading: neighbouring edge points err together). The margin is ``contact_z`` such spreads,
+    with the rim's sigma added. Never more than ``rim_band_in_px``, the margin with a frame's own
+    rim (found to about a pixel). A threshold, not a measurement: no gradient flows through it.
+    """
+    s = settings.astype(dr.dtype)
+    u, v, dr, w_rim = (jax.lax.stop_gradient(a) for a in (u, v, dr, w_rim))
+    arc = jnp.arctan2(u, v) * jax.lax.stop_gradient(r_px)
+    mean, _ = _window_means(arc, dr, w_rim, s.contact_window_px)
+    spread = 1.4826 * _weighted_median(jnp.abs(mean), w_rim)
+    rim_weight = jnp.asarray(rim_weight, dr.dtype)
+    known = (rim_weight > 0) & jnp.isfinite(spread)
+    rim_var = jnp.where(known, 1.0 / jnp.where(known, rim_weight, 1.0), 0.0)
+    margin = s.contact_z * jnp.sqrt(jnp.where(known, spread, 0.0) ** 2 + rim_var)
+    return jnp.where(known, jnp.minimum(margin, s.rim_band_in_px), s.rim_band_in_px)
+
+
+def boundary_side(
+    u: Float[Array, " K"],
+    dr: Float[Array, " K"],
+    lower: Float[Array, " K"],
+    inner_px: Float[Array, ""],
+    settings: SoftSettings,
+) -> Bool[Array, " K"]:
+    """Which outline points lie inside the rim as soil boundary (not rim evidence).
+
+    A point clearly inside (``rim_band_in_px``) always does. Nearer the rim one point's offset is
+    mostly edge error, but a shallow soil edge is a long, smooth dip below the rim (a chord of
+    2 sqrt(2 r z0) px): the mean offset d - r of the lower edge points within
+    ``contact_window_px`` in u (weights ``lower``: facing down, soil below, one per column) must
+    lie more than ``inner_px`` inside, and the dip must reach the rim's lowest point (u = 0)
+    without a break. A wheel resting on the ground touches it first there (the camera is fixed
+    to the rover, so the ground under the wheel is level in the wheel frame to within its local
+    slope), while the rim edge's own errors (JPEG blocks, shading) sit anywhere along the rim.
+    Points beyond the rim's outer band (lug tips) take no part.
+    """
+    s = settings.astype(dr.dtype)
+    u, dr, lower = (jax.lax.stop_gradient(a) for a in (u, dr, lower))
+    wc = jnp.where((lower > 0.1) & (dr <= s.rim_band_out_px), lower, 0.0)
+    mean, sw = _window_means(u, dr, wc, s.contact_window_px)
+    deep = dr < -s.rim_band_in_px
+    dip = (wc > 0) & (sw > 0) & (mean < -inner_px)
+    # Candidates that are not in the dip, counted between u = 0 and each point: none for a
+    # point of the dip connected to the lowest point.
+    gap = ((wc > 0) & ~(dip | deep)).astype(dr.dtype)
+    key = jnp.where(wc > 0, u, jnp.inf)
+    order = jnp.argsort(key)
+    us = key[order]
+    cg = jnp.concatenate([jnp.zeros(1, dr.dtype), jnp.cumsum(gap[order])])
+    zero = jnp.zeros((), dr.dtype)
+    at = jnp.searchsorted(us, jnp.minimum(u, zero), side="left")
+    to = jnp.searchsorted(us, jnp.maximum(u, zero), side="right")
+    connected = (cg[to] - cg[at]) < 0.5
+    # Where the soil is clearly inside the rim the dip adds only the corners where soil edge
+    # and rim edge meet, which smoothing rounds and a thin wedge of background shifts: those
+    # stay out, as the ends' tangents keep ``end_clearance_px`` from them.
+    shallow = jnp.sum(jnp.where(deep, wc, 0.0)) < s.min_boundary_points
+    return deep | (shallow & dip & connected)
 
 
 def build_evidence(
@@ -65,17 +166,22 @@ def build_evidence(
     align = align / d
     w = outline.weight
     dr = d - circle.r_px
-    in_band = ((dr >= -s.rim_band_in_px) & (dr <= s.rim_band_out_px)).astype(dt)
     outer = jax.nn.sigmoid((0.3 - outline.mask_beyond) / 0.05)
-    w_rim = w * in_band * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
-
-    inside = (dr < -s.rim_band_in_px).astype(dt)
     faces_down = jax.nn.sigmoid((outline.ny - 0.3) / 0.1)
     soil_below = jnp.exp(-outline.wheel_below_px / s.wheel_below_scale_px)
     # Non-maximum suppression leaves one point per column on gentle edges and one per row on
     # steep ones; re-weight to one per unit x so the fit matches Eq. 1 on the true curve.
     per_x = jnp.minimum(1.0, jnp.abs(outline.ny) / jnp.maximum(jnp.abs(outline.nx), 1e-3))
-    w_line = w * inside * faces_down * soil_below * per_x
+    lower = w * faces_down * soil_below * per_x
+    is_rim = (dr >= -s.rim_band_in_px) & (dr <= s.rim_band_out_px)
+    rim_like = w * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
+    inner_px = inner_margin_px(u, v, dr, rim_like * is_rim.astype(dt), circle.r_px, rim_weight, s)
+    inside = boundary_side(u, dr, lower, inner_px, s)
+    # The margin the boundary actually starts at (the dip's only for a shallow contact).
+    deep_weight = jnp.sum(jnp.where((dr < -s.rim_band_in_px) & (lower > 0.1), lower, 0.0))
+    inner_px = jnp.where(deep_weight < s.min_boundary_points, inner_px, s.rim_band_in_px)
+    w_rim = rim_like * (is_rim & ~inside).astype(dt)
+    w_line = lower * inside.astype(dt)
 
     # The ends' tangents come from boundary points clear of the corner where the soil edge meets
     # the rim edge (smoothing rounds that corner over a few pixels and would bend them upward).
@@ -115,6 +221,7 @@ def build_evidence(
         settings=s,
         rim_px=start[:3],
         rim_weight=jnp.asarray(rim_weight, dt),
+        inner_px=inner_px,
     )
 
 

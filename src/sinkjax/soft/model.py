@@ -45,6 +45,9 @@ class Evidence(eqx.Module):
     # it (soft.rim); weight 0: the frame's own rim, free.
     rim_px: Float[Array, " 3"] = eqx.field(default_factory=lambda: jnp.zeros(3))
     rim_weight: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
+    # How far inside the rim (px) an edge must lie to count as soil (``fit.inner_margin_px``):
+    # the boundary starts there, so its chord is the line's chord of a circle this much smaller.
+    inner_px: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 def _welsch(res: Array, scale: Array) -> Array:

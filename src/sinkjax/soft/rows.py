@@ -80,7 +80,12 @@ def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str =
     )
     rim_note = _rim_message(out, i)
     if status == Status.NO_CONTACT:
-        result = no_contact(name, (cx, cy), r, overlay)
+        hidden = (
+            float(out.sinkage_std_mm[i]),
+            float(np.degrees(out.theta1_std_rad[i])),
+            float(np.degrees(out.theta2_std_rad[i])),
+        )
+        result = no_contact(name, (cx, cy), r, overlay, hidden)
         return (
             dataclasses.replace(result, message=f"{result.message}; {rim_note}")
             if rim_note

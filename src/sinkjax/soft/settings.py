@@ -79,6 +79,10 @@ class SoftSettings(eqx.Module):
     - ``min_rim_support``: fraction of the rim's circumference that must show edge evidence,
       else the frame is ``no_wheel``.
     - ``min_boundary_points``: boundary weight (points) needed to count as contact.
+    - ``contact_window_px``: half-width (px along the ground) of the window over which the lower
+      edge's offset inside the rim is averaged to tell a shallow soil edge from rim noise.
+    - ``contact_z``: how many sigmas of that average (the frame's own edge noise and the
+      recording rim's sigma) the edge must lie inside the rim to be soil: one-sided 99.9 %.
     """
 
     edge_level: Float[Array, ""] = _scalar(0.08)
@@ -98,6 +102,8 @@ class SoftSettings(eqx.Module):
     prior_weight: Float[Array, ""] = _scalar(1e-4)
     min_rim_support: Float[Array, ""] = _scalar(0.2)
     min_boundary_points: Float[Array, ""] = _scalar(4.0)
+    contact_window_px: Float[Array, ""] = _scalar(5.0)
+    contact_z: Float[Array, ""] = _scalar(3.09)
     refine_half_width_px: float = eqx.field(static=True, default=3.0)
     refine_step_px: float = eqx.field(static=True, default=0.5)
     centre_bin_px: int = eqx.field(static=True, default=4)

@@ -1,0 +1,144 @@
+"""Shallow contact (issue 14, item 2): sinkage below 2 px against the recording's rim."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sinkjax import synth as S
+from sinkjax.soft.estimator import hidden_contact_std, measure
+from sinkjax.soft.fit import boundary_side
+from sinkjax.soft.rim import RecordingRim
+from sinkjax.soft.settings import SoftSettings
+from sinkjax.status import Status
+
+CX, CY, R = 160.0, 100.0, 100.0
+
+
+@functools.cache
+def _frame(soil_level_px: float) -> tuple[np.ndarray, S.Truth]:
+    # Lugs, JPEG, noise, blur and a cast shadow, as in the "full" preset.
+    scene = S.Scene(
+        width=320,
+        height=240,
+        centre_x_px=CX,
+        centre_y_px=CY,
+        radius_px=R,
+        rim_width_px=6.0,
+        n_lugs=12,
+        lug_height_px=4.0,
+        lug_width_px=8.0,
+        phase_rad=0.3,
+        hub_radius_px=14.0,
+        soil_level_px=soil_level_px,
+        pebbles=40,
+        shadow_factor=0.5,
+        shadow_offset_px=(-10.0, 15.0),
+        noise_std=2.0,
+        blur_sigma_px=0.5,
+        jpeg_quality=85,
+    )
+    return S.render(scene, seed=3)
+
+
+_measure = jax.jit(measure, static_argnames=("rect", "travel", "wheel_radius_mm"))
+
+
+def _run(image: np.ndarray, **kw):
+    # The recording's rim, known to 0.05 px (soft.rim), as SoftRecording measures frames.
+    rig = S.rig_for(S.Scene(width=320, height=240, centre_x_px=CX, centre_y_px=CY, radius_px=R))
+    return _measure(
+        jnp.asarray(image, jnp.float64) / 255.0,
+        rig.segmentation,
+        rect=rig.confidence_rect,
+        travel=rig.travel,
+        wheel_radius_mm=rig.wheel_radius_mm,
+        rim=RecordingRim.fixed(CX, CY, R, 0.05),
+        **kw,
+    )
+
+
+@pytest.mark.parametrize("z0_px", [0.7, 1.2])
+def test_shallow_contact_is_measured(z0_px: float) -> None:
+    image, truth = _frame(CY + R - z0_px)
+    assert truth.contact and truth.sinkage_px == pytest.approx(z0_px, abs=1e-6)
+    est = _run(image)
+    assert Status.from_code(int(est.status)) == Status.OK
+    px_per_mm = R / S.Scene().wheel_radius_mm
+    assert abs(float(est.sinkage_mm) * px_per_mm - truth.sinkage_px) < 0.3
+    assert float(est.sinkage_std_mm) > 0
+
+
+def test_no_contact_reports_the_sinkage_it_could_hide() -> None:
+    image, truth = _frame(CY + R + 8.0)
+    assert not truth.contact
+    est = _run(image)
+    assert Status.from_code(int(est.status)) == Status.NO_CONTACT
+    assert float(est.sinkage_mm) == 0.0
+    # z_max = sqrt(3) sigma (px): more than nothing, less than the 0.7 px contact seen above.
+    z_max_px = np.sqrt(3.0) * float(est.sinkage_std_mm) * R / S.Scene().wheel_radius_mm
+    assert 0.05 < z_max_px < 0.7
+    # Each angle's sigma is that of a sinkage uniform on [0, z_max] on flat ground.
+    theta = np.arccos(1.0 - z_max_px / R)
+    assert float(est.theta1_std_rad) == pytest.approx(theta / np.sqrt(2.0), rel=1e-6)
+
+
+def test_hidden_sigma_matches_uniform_sinkage() -> None:
+    # Monte Carlo reference: RMS of reading 0 for z0 uniform on [0, z_max].
+    s = SoftSettings()
+    r, inner = jnp.asarray(120.0), jnp.asarray(0.4)
+    std = np.asarray(hidden_contact_std(r, inner, 1.0, s))
+    z_max = 0.4 + (0.5 * float(s.min_boundary_points)) ** 2 / (2 * 120.0)
+    z = np.random.default_rng(0).uniform(0, z_max, 200_000)
+    assert std[0] == pytest.approx(120.0**-1 * np.sqrt(np.mean(z**2)), rel=1e-2)
+    theta = np.arccos(1 - z / 120.0)
+    assert std[1] == pytest.approx(np.sqrt(np.mean(theta**2)), rel=2e-2)
+
+
+def _lower_edge(dip_at_deg: float, depth_px: float) -> tuple[jnp.ndarray, jnp.ndarray]:
+    # Lower half of a rim of radius R, one point per px of arc, with a straight soil chord of
+    # the given depth whose middle is at the given angle from the bottom.
+    phi = np.linspace(-np.pi / 2, np.pi / 2, int(np.pi * R))
+    x, y = R * np.sin(phi), R * np.cos(phi)
+    a = np.radians(dip_at_deg)
+    normal = np.array([np.sin(a), np.cos(a)])
+    along = x * normal[0] + y * normal[1]
+    cut = along > R - depth_px
+    # Project the points beyond the chord onto it (the soil hides the rim there).
+    x = np.where(cut, x - (along - (R - depth_px)) * normal[0], x)
+    y = np.where(cut, y - (along - (R - depth_px)) * normal[1], y)
+    dr = np.hypot(x, y) - R
+    return jnp.asarray(x), jnp.asarray(dr)
+
+
+@pytest.mark.parametrize(("dip_at_deg", "contact"), [(0.0, True), (35.0, False)])
+def test_a_dip_counts_as_contact_only_at_the_bottom(dip_at_deg: float, contact: bool) -> None:
+    u, dr = _lower_edge(dip_at_deg, 0.8)
+    inside = boundary_side(u, dr, jnp.ones_like(u), jnp.asarray(0.3), SoftSettings())
+    # A dip of 0.8 px is a chord of 2 sqrt(2 R 0.8) = 25 px; the mean over +-5 px exceeds 0.3 px
+    # over its middle.
+    assert (int(jnp.sum(inside)) >= 4) == contact
+
+
+def test_gradients_are_finite_on_a_shallow_frame() -> None:
+    image, _ = _frame(CY + R - 0.7)
+    rig = S.rig_for(S.Scene(width=320, height=240, centre_x_px=CX, centre_y_px=CY, radius_px=R))
+    rim = RecordingRim.fixed(CX, CY, R, 0.05)
+
+    def loss(im: jnp.ndarray) -> jnp.ndarray:
+        e = _measure(
+            im,
+            rig.segmentation,
+            rect=rig.confidence_rect,
+            travel=rig.travel,
+            wheel_radius_mm=rig.wheel_radius_mm,
+            rim=rim,
+        )
+        return e.sinkage_mm + e.theta1_rad + e.sinkage_std_mm
+
+    g = jax.grad(loss)(jnp.asarray(image, jnp.float64) / 255.0)
+    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.max(jnp.abs(g))) > 0
