@@ -179,10 +179,16 @@ def plausibility(
     i_b = jnp.argmin(jnp.where(present, u, jnp.inf))
     gap = jnp.maximum(p[2] - d[i_a], p[2] - d[i_b])
     dist = jnp.abs(p[4]) / jnp.sqrt(p[3] ** 2 + 1.0)
-    # Edges count as boundary only ``ev.inner_px`` inside the rim: the chord of that circle.
+    # Edges count as boundary from ``ev.inner_px`` inside the rim, and the soil/rim corner can
+    # add points up to the rim itself: the span lies between the chords of the two circles
+    # (for a shallow contact they differ by half or more, so neither alone is the reference).
     r_in = p[2] - ev.inner_px.astype(dt)
-    chord = 2.0 * jnp.sqrt(jnp.maximum(r_in**2 - dist**2, 1.0)) / jnp.sqrt(p[3] ** 2 + 1.0)
-    chord_ratio = (u[i_a] - u[i_b]) / chord
+    slope = jnp.sqrt(p[3] ** 2 + 1.0)
+    chord = 2.0 * jnp.sqrt(jnp.maximum(r_in**2 - dist**2, 1.0)) / slope
+    chord_full = 2.0 * jnp.sqrt(jnp.maximum(p[2] ** 2 - dist**2, 1.0)) / slope
+    span = u[i_a] - u[i_b]
+    chord_ratio = span / chord
+    chord_wrong = (chord_ratio < CHORD_RATIO_RANGE[0]) | (span / chord_full > CHORD_RATIO_RANGE[1])
 
     ring = _ring_disagreement(mask, p, ev.sign, contact)
     clearance = ev.settings.end_clearance_px.astype(dt)
@@ -191,7 +197,7 @@ def plausibility(
             ring > MAX_RING_DISAGREEMENT,
             contact & (above > MAX_ABOVE_CENTRE),
             contact & (gap > clearance + jnp.maximum(3.0, END_GAP_FRACTION * p[2])),
-            contact & ((chord_ratio < CHORD_RATIO_RANGE[0]) | (chord_ratio > CHORD_RATIO_RANGE[1])),
+            contact & chord_wrong,
             contact & _soil_beyond(image, p, ev.sign),
         ]
     )
