@@ -2,10 +2,12 @@
 
 Renders synthetic recordings of the full mix (lugs, shadows, all terrains, four image sizes) with
 two seeds DISJOINT from the benchmark's (2026), the experiments' (2024) and robustness (20261):
-one to fit on (``--fit-seed``), one to report on (``--eval-seed``). Each frame is measured twice
-with the same fit, once with the raw delta-method sigma (scale 1, no floor) and once with a unit
-floor alone, so that any model's sigma = sqrt((a sigma_raw)^2 + (f sigma_unit)^2) is exact
-(the plausibility check's sigma factor included) without measuring again.
+one to fit on (``--fit-seed``), one to report on (``--eval-seed``). Each frame is measured three
+times with the same fit, once with the raw delta-method sigma (scale 1, no floor), once with a unit
+floor alone and once with no model term (what the estimator adds after the model: the soil-line
+ambiguity), so that any model's sigma = sqrt(k^2 ((a sigma_raw)^2 + (f sigma_unit)^2) + extra^2)
+(k the t's standard-deviation factor) is exact, the plausibility check's sigma factor included,
+without measuring again.
 
 Per quantity (z0, θ1, θ2) the scale a, floor f and the degrees of freedom ν of a Student-t for
 error / sigma are fitted by maximum likelihood on the fit seed, beside a Gaussian (ν = ∞) fit for
@@ -48,6 +50,9 @@ TOLERANCE = 3.0
 CURVE = tuple(float(p) for p in np.linspace(0.02, 0.995, 60))
 RAW = UncertaintyModel.raw()
 UNIT_FLOOR = UncertaintyModel(0.0, 0.0, 0.0, 1.0, 1.0, 1.0, *(3 * (math.inf,)))  # the floor alone
+# No model term at all: what is left is the soil-line ambiguity sigma (soft.checks), which the
+# estimator adds in quadrature after the model; it is taken out of the other two runs.
+NO_MODEL = UncertaintyModel(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *(3 * (math.inf,)))
 # (truth attribute, result attribute, std attribute) per quantity; sinkage mm, angles deg
 ATTRS = {
     "sinkage": ("sinkage_mm", "sinkage_mm", "sinkage_std_mm"),
@@ -82,13 +87,15 @@ def measure(
             args = ([f.image for f in chunk], chunk[0].rig, [f.name for f in chunk])
             raw = sj.estimate_batch(*args, pad_to=8, uncertainty=RAW)
             unit = sj.estimate_batch(*args, pad_to=8, uncertainty=UNIT_FLOOR)
-            for f, r, u in zip(chunk, raw, unit, strict=True):
+            extra = sj.estimate_batch(*args, pad_to=8, uncertainty=NO_MODEL)
+            for f, r, u, e in zip(chunk, raw, unit, extra, strict=True):
                 row: dict = {"seed": seed, "frame": f.name, "status": str(r.status)}
                 for q, (t_attr, v_attr, s_attr) in ATTRS.items():
                     row[f"true_{q}"] = getattr(f.truth, t_attr)
                     row[q] = getattr(r, v_attr)
                     row[f"{q}_raw"] = getattr(r, s_attr)
                     row[f"{q}_unit"] = getattr(u, s_attr)
+                    row[f"{q}_extra"] = getattr(e, s_attr)
                 rows.append(row)
         runs.log(f"seed {seed}: {len(rows)}/{len(frames)} frames measured")
     return rows
@@ -118,23 +125,42 @@ class Data:
         err = sm.signed_error([r[f"true_{q}"] for r in rows], [r[q] for r in rows], status)
         raw = np.asarray([r[f"{q}_raw"] for r in rows], dtype=np.float64)
         unit = np.asarray([r[f"{q}_unit"] for r in rows], dtype=np.float64)
+        extra = np.asarray([r.get(f"{q}_extra", 0.0) for r in rows], dtype=np.float64)
+        extra = np.where(np.isfinite(extra), extra, 0.0)
         ok = np.asarray([s == "ok" for s in status]) & np.isfinite(err)
         ok &= np.isfinite(raw) & (raw > 0) & np.isfinite(unit)
-        self.err, self.raw, self.unit = err[ok], raw[ok], unit[ok]
+        # The model's own parts, without the term added after it (float32 rounding: >= 0).
+        raw = np.sqrt(np.maximum(raw**2 - extra**2, 0.0))
+        unit = np.sqrt(np.maximum(unit**2 - extra**2, 0.0))
+        self.err, self.raw, self.unit, self.extra = err[ok], raw[ok], unit[ok], extra[ok]
         # The recording (seed, index) of each frame: frames of one rig share their errors' causes.
         rec = [(r["seed"], r["frame"].split("_")[0]) for r in rows]
         self.recording = np.unique(np.asarray([str(x) for x in rec]), return_inverse=True)[1][ok]
 
-    def sigma(self, scale: float, floor: float) -> np.ndarray:
-        return np.sqrt((scale * self.raw) ** 2 + (floor * self.unit) ** 2)
+    def sigma(self, scale: float, floor: float, std_factor: float = 1.0) -> np.ndarray:
+        """The reported sigma of a model with this scale and floor (the t's scale times
+        ``std_factor``), the term added after the model included."""
+        model = std_factor * np.sqrt((scale * self.raw) ** 2 + (floor * self.unit) ** 2)
+        return np.sqrt(model**2 + self.extra**2)
 
 
 # ----------------------------------------------------------------------------- fitting
 
 
+def std_factor(dof: float) -> float:
+    """Standard deviation over scale of a Student-t (1 for the Gaussian)."""
+    return 1.0 if math.isinf(dof) else math.sqrt(dof / (dof - 2.0))
+
+
+def t_scale(d: Data, scale: float, floor: float, dof: float) -> np.ndarray:
+    """The t's scale per frame: the reported sigma over the t's standard-deviation factor."""
+    f = std_factor(max(dof, MIN_DOF))
+    return d.sigma(scale, floor, f) / f
+
+
 def nll(d: Data, scale: float, floor: float, dof: float) -> float:
     """Negative log likelihood of the errors: error / sigma ~ Student-t(dof) (inf: Gaussian)."""
-    s = np.maximum(d.sigma(scale, floor), 1e-12)
+    s = np.maximum(t_scale(d, scale, floor, dof), 1e-12)
     z2 = (d.err / s) ** 2
     if math.isinf(dof):
         return float(np.sum(np.log(s) + 0.5 * z2 + 0.5 * math.log(2 * math.pi)))
@@ -179,7 +205,7 @@ def fit_quantiles(d: Data, start: dict) -> dict:
 
     def objective(x: np.ndarray) -> float:
         scale, floor, dof = np.exp(x)
-        z = np.abs(d.err) / np.maximum(d.sigma(scale, floor), 1e-12)
+        z = np.abs(d.err) / np.maximum(t_scale(d, scale, floor, dof), 1e-12)
         got = np.quantile(z, levels)
         want = stats.t.ppf(0.5 + levels / 2, dof)
         return float(np.sum((np.log(np.maximum(got, 1e-12)) - np.log(want)) ** 2))
@@ -226,8 +252,9 @@ def model_from(params: dict[str, dict]) -> UncertaintyModel:
 def reported_sigma(d: Data, model: UncertaintyModel, q: str) -> np.ndarray:
     """The sigma ``model`` reports for each frame (its t's standard deviation)."""
     i = QUANTITIES.index(q)
-    scale = d.sigma(float(model.scales()[i]), float(model.floors()[i]))
-    return scale * float(model.std_factors()[i])
+    return d.sigma(
+        float(model.scales()[i]), float(model.floors()[i]), float(model.std_factors()[i])
+    )
 
 
 def coverage(d: Data, model: UncertaintyModel, q: str, levels: tuple[float, ...]) -> list[float]:
@@ -462,7 +489,7 @@ def main(argv: list[str] | None = None) -> int:
     fits = {}
     for q in QUANTITIES:
         g = fit(tr[q], math.inf)
-        z = tr[q].err / tr[q].sigma(g["scale"], g["floor"])
+        z = tr[q].err / t_scale(tr[q], g["scale"], g["floor"], math.inf)
         student = fit(tr[q], None)
         fits[q] = {"frames": int(tr[q].err.size), "gaussian": g, "student": student}
         fits[q]["quantile"] = fit_quantiles(tr[q], student)
