@@ -39,9 +39,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .model import Evidence, end_point, residuals
+from .model import Evidence, end_point, measurements, residuals
 
 N_RING_SAMPLES = 256
+N_BAND_DEPTH, N_BAND_ALONG = 48, 64  # samples of the disc segment below the soil line
 # 99.9 % one-sided normal quantile: the tests' false-alarm rate on a frame the model explains.
 _Z_999 = 3.09
 # Correlation length of neighbouring outline points, in points: the uncertainty model's sigma
@@ -56,8 +57,10 @@ class Plausibility(eqx.Module):
     ``rim_f`` (rim residual variance over the boundary's local edge noise variance) and
     ``rim_f_limit`` (its 99.9 % point), ``above_centre`` (fraction of boundary weight above O),
     ``end_gap_px`` (the larger distance from a boundary end to the rim), ``chord_ratio``
-    (boundary x-span over the chord z0 implies); ``sigma_scale`` multiplies sigma; ``code`` is
-    0 when plausible, else 1 + the index of the first failed test in :data:`TESTS`.
+    (boundary x-span over the chord z0 implies); ``sigma_scale`` multiplies sigma;
+    ``line_shift_px`` (how far below the fitted soil line the mask's own wheel says the line
+    could be, root mean square) adds to sigma in quadrature (:func:`line_shift_std`); ``code``
+    is 0 when plausible, else 1 + the index of the first failed test in :data:`TESTS`.
     """
 
     ring_disagreement: Float[Array, ""]
@@ -67,6 +70,7 @@ class Plausibility(eqx.Module):
     end_gap_px: Float[Array, ""]
     chord_ratio: Float[Array, ""]
     sigma_scale: Float[Array, ""]
+    line_shift_px: Float[Array, ""]
     code: Array
 
     @property
@@ -108,6 +112,44 @@ def _ring_disagreement(
     wrong = jnp.where(wheel_side, 1.0 - m, m)
     n_seen = jnp.sum(seen.astype(dt))
     return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
+
+
+def _wheel_below(
+    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, edge_px: Array
+) -> tuple[Array, Array]:
+    """Wheel the mask keeps below the fitted soil line: (mass, rms depth), both px.
+
+    Samples the disc segment inside the ring of :func:`_ring_disagreement` that lies more than
+    ``edge_px`` (the outline's own search half-width: mask structure nearer the line is the edge
+    itself) below the equivalent line. Read the soft mask at depth s below the edge zone as the
+    probability that the soil line lies deeper than s (wheel there means the line is below it):
+    then ``mass``, the integral of the mask per unit of chord, is the expected depth of the true
+    line below the fitted one, and ``rms`` = sqrt(2 * integral of s * mask) its root mean square
+    (E[D^2] = 2 * integral of s P(D > s) ds): how far down the soil line could be.
+    """
+    height, width = mask.shape
+    dt = mask.dtype
+    r, k = p[2], p[3]
+    rho = r - jnp.maximum(2.0, 0.04 * r)
+    norm = jnp.sqrt(1.0 + k * k)
+    d0 = p[4] / norm  # the line's distance below O along its downward normal
+    n, t = jnp.stack([-k, 1.0]) / norm, jnp.stack([1.0, k]) / norm
+    depth = jnp.maximum(rho - d0 - edge_px, 0.0)
+    frac_s = (jnp.arange(N_BAND_DEPTH, dtype=dt) + 0.5) / N_BAND_DEPTH
+    frac_a = (jnp.arange(N_BAND_ALONG, dtype=dt) + 0.5) / N_BAND_ALONG * 2.0 - 1.0
+    s = edge_px + frac_s * depth  # depth below the line, px
+    half = jnp.sqrt(jnp.maximum(rho * rho - (d0 + s) ** 2, 1e-12))
+    a = frac_a[None, :] * half[:, None]
+    u = a * t[0] + (d0 + s)[:, None] * n[0]
+    v = a * t[1] + (d0 + s)[:, None] * n[1]
+    x, y = p[0] + sign * u, p[1] + v
+    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    m = jnp.where(seen, _bilinear(mask, x.ravel(), y.ravel()).reshape(x.shape), 0.0)
+    area = (2.0 * half / N_BAND_ALONG * depth / N_BAND_DEPTH)[:, None]  # px^2 per sample
+    chord = 2.0 * jnp.sqrt(jnp.maximum(rho * rho - d0 * d0, 1.0))
+    mass = jnp.sum(m * area) / chord
+    second = 2.0 * jnp.sum(m * area * (s - edge_px)[:, None]) / chord
+    return mass, jnp.sqrt(second + 1e-12)
 
 
 def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
@@ -195,6 +237,8 @@ def plausibility(
     )
     code = jnp.where(jnp.any(fails), 1 + jnp.argmax(fails), 0).astype(jnp.int32)
     sigma_scale = jnp.sqrt(jnp.where(has_ends, jnp.maximum(rim_f, 1.0), 1.0))
+    edge_px = jnp.asarray(ev.settings.refine_half_width_px, dt)
+    _, shift = _wheel_below(mask, p, ev.sign, edge_px)
     return Plausibility(
         ring_disagreement=ring,
         rim_f=rim_f,
@@ -203,8 +247,20 @@ def plausibility(
         end_gap_px=gap,
         chord_ratio=chord_ratio,
         sigma_scale=sigma_scale,
+        line_shift_px=jnp.where(contact, shift, 0.0),
         code=code,
     )
+
+
+def line_shift_std(
+    p: Float[Array, " 9"], check: Plausibility, wheel_radius_mm: float | Float[Array, ""]
+) -> Float[Array, " 3"]:
+    """The sigma (z0 mm, theta1 rad, theta2 rad) of the soil line's ambiguity: the measurements'
+    change when the equivalent line and both end lines move down by ``check.line_shift_px``."""
+    k = p[3]
+    down = jnp.zeros_like(p).at[4].set(jnp.sqrt(1.0 + k * k)).at[6].set(1.0).at[8].set(1.0)
+    g = jax.jacfwd(measurements)(p, wheel_radius_mm)
+    return jnp.abs(g @ down) * check.line_shift_px
 
 
 def message(code: int) -> str:
