@@ -70,17 +70,18 @@ def test_implausible_status() -> None:
     assert "calibrate" in s.message and math.isfinite(s.code)
 
 
-def test_line_shift_matches_a_pixel_count_of_the_wheel_below_the_line() -> None:
+def test_line_shift_matches_a_pixel_count_of_the_mask_around_the_line() -> None:
     # A wheel of radius 100 px at (160, 120), soil line 40 px below O; the mask keeps wheel at
     # 0.4 in a 20 px band starting 3 px (the edge zone) below the line, as faded dust does.
-    from sinkjax.soft.checks import _wheel_below
+    from sinkjax.soft.checks import _line_shift
 
     cx, cy, r, line, edge, band, level = 160.0, 120.0, 100.0, 40.0, 3.0, 20.0, 0.4
     yy, xx = np.mgrid[0:240, 0:320].astype(float)
     depth = yy - cy - line
     mask = np.where(depth < 0, 1.0, np.where((depth > edge) & (depth < edge + band), level, 0.0))
     p = jnp.asarray([cx, cy, r, 0.0, line, 0.0, 0.0, 0.0, 0.0])
-    mass, rms = jax.jit(_wheel_below)(jnp.asarray(mask), p, jnp.asarray(1.0), jnp.asarray(edge))
+    shift = jax.jit(_line_shift)
+    mass, rms, fade = shift(jnp.asarray(mask), p, jnp.asarray(1.0), jnp.asarray(edge))
     # Reference: a sum over the pixels of the ring's disc below the edge zone (1 px^2 each).
     rho = r - max(2.0, 0.04 * r)
     inside = (np.hypot(xx - cx, yy - cy) < rho) & (depth > edge)
@@ -89,10 +90,14 @@ def test_line_shift_matches_a_pixel_count_of_the_wheel_below_the_line() -> None:
     ref_rms = math.sqrt(2.0 * float(np.sum((mask * (depth - edge))[inside])) / chord)
     assert float(mass) == pytest.approx(ref_mass, rel=0.03)
     assert float(rms) == pytest.approx(ref_rms, rel=0.03)
+    band_up = (np.hypot(xx - cx, yy - cy) < rho) & (depth < -edge) & (depth > -(rho - line))
+    amb = mask * (1.0 - mask)
+    ref_fade = float(np.sum(amb[inside]) + np.sum(amb[band_up])) / chord
+    assert float(fade) == pytest.approx(ref_fade, rel=0.03)
     # Nothing below the edge zone: no shift (a clean frame keeps its sigma).
     clean = np.where(depth < 0, 1.0, 0.0)
-    _, none = jax.jit(_wheel_below)(jnp.asarray(clean), p, jnp.asarray(1.0), jnp.asarray(edge))
-    assert float(none) < 1e-3
+    _, none, no_fade = shift(jnp.asarray(clean), p, jnp.asarray(1.0), jnp.asarray(edge))
+    assert float(none) < 1e-3 and float(no_fade) < 1e-3
 
 
 def test_line_shift_std_moves_z0_by_the_shift() -> None:

@@ -114,19 +114,12 @@ def _ring_disagreement(
     return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
 
 
-def _wheel_below(
-    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, edge_px: Array
-) -> tuple[Array, Array]:
-    """Wheel the mask keeps below the fitted soil line: (mass, rms depth), both px.
-
-    Samples the disc segment inside the ring of :func:`_ring_disagreement` that lies more than
-    ``edge_px`` (the outline's own search half-width: mask structure nearer the line is the edge
-    itself) below the equivalent line. Read the soft mask at depth s below the edge zone as the
-    probability that the soil line lies deeper than s (wheel there means the line is below it):
-    then ``mass``, the integral of the mask per unit of chord, is the expected depth of the true
-    line below the fitted one, and ``rms`` = sqrt(2 * integral of s * mask) its root mean square
-    (E[D^2] = 2 * integral of s P(D > s) ds): how far down the soil line could be.
-    """
+def _segment(
+    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, start_px: Array, side: float
+) -> tuple[Array, Array, Array]:
+    """The mask sampled on the disc (inside the ring of :func:`_ring_disagreement`) from
+    ``start_px`` on below (``side`` +1) or above (-1) the equivalent line, as deep as the segment
+    below it reaches: (mask, depth beyond ``start_px``, area px^2 per chord px) per sample."""
     height, width = mask.shape
     dt = mask.dtype
     r, k = p[2], p[3]
@@ -134,22 +127,44 @@ def _wheel_below(
     norm = jnp.sqrt(1.0 + k * k)
     d0 = p[4] / norm  # the line's distance below O along its downward normal
     n, t = jnp.stack([-k, 1.0]) / norm, jnp.stack([1.0, k]) / norm
-    depth = jnp.maximum(rho - d0 - edge_px, 0.0)
+    depth = jnp.maximum(rho - d0 - start_px, 0.0)
     frac_s = (jnp.arange(N_BAND_DEPTH, dtype=dt) + 0.5) / N_BAND_DEPTH
     frac_a = (jnp.arange(N_BAND_ALONG, dtype=dt) + 0.5) / N_BAND_ALONG * 2.0 - 1.0
-    s = edge_px + frac_s * depth  # depth below the line, px
-    half = jnp.sqrt(jnp.maximum(rho * rho - (d0 + s) ** 2, 1e-12))
+    s = start_px + frac_s * depth  # distance from the line, px
+    off = d0 + side * s
+    half = jnp.sqrt(jnp.maximum(rho * rho - off**2, 1e-12))
     a = frac_a[None, :] * half[:, None]
-    u = a * t[0] + (d0 + s)[:, None] * n[0]
-    v = a * t[1] + (d0 + s)[:, None] * n[1]
-    x, y = p[0] + sign * u, p[1] + v
+    x = p[0] + sign * (a * t[0] + off[:, None] * n[0])
+    y = p[1] + a * t[1] + off[:, None] * n[1]
     seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
     m = jnp.where(seen, _bilinear(mask, x.ravel(), y.ravel()).reshape(x.shape), 0.0)
-    area = (2.0 * half / N_BAND_ALONG * depth / N_BAND_DEPTH)[:, None]  # px^2 per sample
     chord = 2.0 * jnp.sqrt(jnp.maximum(rho * rho - d0 * d0, 1.0))
-    mass = jnp.sum(m * area) / chord
-    second = 2.0 * jnp.sum(m * area * (s - edge_px)[:, None]) / chord
-    return mass, jnp.sqrt(second + 1e-12)
+    area = (2.0 * half / N_BAND_ALONG * depth / N_BAND_DEPTH)[:, None] / chord
+    return m, jnp.broadcast_to((s - start_px)[:, None], m.shape), jnp.broadcast_to(area, m.shape)
+
+
+def _line_shift(
+    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, edge_px: Array
+) -> tuple[Array, Array, Array]:
+    """How far the soil line could be from the fitted one by the mask's own account, px:
+    (mass, rms, fade).
+
+    Mask structure within ``edge_px`` (the outline's own search half-width) of the equivalent
+    line is the edge itself and is left out. Below that zone, read the soft mask at depth s as
+    the probability that the soil line lies deeper than s (wheel there means the line is below
+    it): ``mass``, the mask's integral per unit of chord, is then the expected depth D of the
+    true line below the fitted one and ``rms`` = sqrt(E[D^2]) = sqrt(2 * integral of s * mask)
+    (E[D^2] = 2 * integral of s P(D > s) ds). ``fade`` is the width of the mask's transition
+    across the line on both sides of the edge zone (as deep above as the segment reaches
+    below), as the integral of mask * (1 - mask) per unit of chord: a mask that fades from wheel
+    to soil over a band of width L (soil-coloured dust, noise) gives L / 6, a sharp edge 0.
+    """
+    m, s, area = _segment(mask, p, sign, edge_px, 1.0)
+    m_up, _, area_up = _segment(mask, p, sign, edge_px, -1.0)
+    mass = jnp.sum(m * area)
+    second = 2.0 * jnp.sum(m * area * s)
+    fade = jnp.sum(m * (1.0 - m) * area) + jnp.sum(m_up * (1.0 - m_up) * area_up)
+    return mass, jnp.sqrt(second + 1e-12), fade
 
 
 def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
@@ -238,7 +253,10 @@ def plausibility(
     code = jnp.where(jnp.any(fails), 1 + jnp.argmax(fails), 0).astype(jnp.int32)
     sigma_scale = jnp.sqrt(jnp.where(has_ends, jnp.maximum(rim_f, 1.0), 1.0))
     edge_px = jnp.asarray(ev.settings.refine_half_width_px, dt)
-    _, shift = _wheel_below(mask, p, ev.sign, edge_px)
+    _, shift_rms, fade = _line_shift(mask, p, ev.sign, edge_px)
+    # The line may sit anywhere in a fade of width L = 6 fade: a uniform spread of L / sqrt(12)
+    # = sqrt(3) fade about it, on top of the one-sided shift the mask's wheel below it implies.
+    shift = jnp.sqrt(shift_rms**2 + 3.0 * fade**2)
     return Plausibility(
         ring_disagreement=ring,
         rim_f=rim_f,
