@@ -28,6 +28,14 @@ weighs the model against its own inputs, with no threshold taken from the render
   at both ends it looks like what is above (the background), the "boundary" is an edge on the
   wheel itself (soil-coloured dust on its lower part, a shadow line).
 
+- **where the soil line could be** (a sigma, not a test): dust that fades the wheel towards the
+  soil's colour, or noise, leaves the mask neither wheel nor soil over a band around the line,
+  and the line sits somewhere in it. Outside the outline's own edge zone, the wheel the mask
+  keeps below the line (read as the probability that the line is deeper) and the width of the
+  mask's fade across it give how far the line could be, in px; the measurements' change for a
+  line moved that far (:func:`line_shift_std`) adds to sigma in quadrature. On a frame whose
+  mask has a sharp soil edge both are about zero and sigma is unchanged.
+
 Frames failing any test get status ``implausible`` (their message names the test) instead of a
 confident number. Everything is pure JAX, jit- and vmap-able.
 """
