@@ -66,8 +66,8 @@ class Plausibility(eqx.Module):
     ``rim_f_limit`` (its 99.9 % point), ``above_centre`` (fraction of boundary weight above O),
     ``end_gap_px`` (the larger distance from a boundary end to the rim), ``chord_ratio``
     (boundary x-span over the chord z0 implies); ``sigma_scale`` multiplies sigma;
-    ``line_shift_px`` (how far below the fitted soil line the mask's own wheel says the line
-    could be, root mean square) adds to sigma in quadrature (:func:`line_shift_std`); ``code``
+    ``line_shift_px`` (how far from the fitted soil line the mask says the line could be, root
+    mean square, px) adds to sigma in quadrature (:func:`line_shift_std`); ``code``
     is 0 when plausible, else 1 + the index of the first failed test in :data:`TESTS`.
     """
 
