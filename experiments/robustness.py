@@ -14,6 +14,11 @@ other than ``ok``.
 
     python experiments/robustness.py              # 5 presets x 3 recordings x 12 frames
     python experiments/robustness.py --quick      # 5 presets x 1 recording x 4 frames
+    python experiments/robustness.py --baseline old/robustness.json  # adds a before/after table
+
+The soft method's sigma includes the soil line's ambiguity (``soft.checks.line_shift_std``: the
+wheel the mask keeps below the fitted line, read as the probability that the line is deeper);
+``--baseline`` compares the soft rows with an earlier run of this script (same seed and sizes).
 """
 
 from __future__ import annotations
@@ -168,6 +173,30 @@ def report(summary: dict, cfg: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def compare(summary: dict, baseline: dict, label: str) -> str:
+    """The soft method's flagged-vs-wrong and coverage, ``baseline`` (an earlier run) vs now."""
+    f = lambda x: "-" if x is None or not np.isfinite(x) else f"{x:.1f}"
+    lines = [
+        "",
+        f"Soft method before ({label}) / after: ±1.96σ coverage of z0 over `ok` frames, and "
+        "the flagged-vs-wrong counts.",
+        "",
+        "| preset | cover z0 [%] | ok frames | wrong+ok | wrong+flagged | right+flagged | "
+        "right+ok |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for preset, now in summary["soft"].items():
+        old = baseline["soft"][preset]
+        cells = [f"{f(old['coverage_z0_pct'])} / {f(now['coverage_z0_pct'])}"]
+        cells.append(f"{old['statuses'].get('ok', 0)} / {now['statuses'].get('ok', 0)}")
+        cells += [
+            f"{old[k]} / {now[k]}"
+            for k in ("wrong_ok", "wrong_flagged", "right_flagged", "right_ok")
+        ]
+        lines.append(f"| {preset} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seed", type=int, default=EVAL_SEED)
@@ -177,6 +206,9 @@ def main() -> None:
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--quick", action="store_true", help="1 recording x 4 frames per preset")
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument(
+        "--baseline", type=Path, help="an earlier robustness.json to compare the soft rows with"
+    )
     p.add_argument(
         "--soft-only", action="store_true", help="skip the classic method (while developing)"
     )
@@ -205,6 +237,11 @@ def main() -> None:
         json.dumps({"config": cfg, "summary": summary, "frames": rows}, indent=1, default=str)
     )
     text = report(summary, cfg)
+    if a.baseline is not None:
+        base = json.loads(a.baseline.read_text())
+        if base["config"]["seed"] != a.seed:
+            raise SystemExit(f"--baseline is seed {base['config']['seed']}, this run {a.seed}")
+        text += compare(summary, base["summary"], a.baseline.name)
     (a.out / f"{name}.md").write_text(text)
     print(text)
 

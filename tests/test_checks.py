@@ -68,3 +68,49 @@ def test_implausible_status() -> None:
     s = Status.IMPLAUSIBLE
     assert str(s) == "implausible" and not s.measured and Status.from_code(s.code) is s
     assert "calibrate" in s.message and math.isfinite(s.code)
+
+
+def test_line_shift_matches_a_pixel_count_of_the_mask_around_the_line() -> None:
+    # A wheel of radius 100 px at (160, 120), soil line 40 px below O; the mask keeps wheel at
+    # 0.4 in a 20 px band starting 3 px (the edge zone) below the line, as faded dust does.
+    from sinkjax.soft.checks import _line_shift
+
+    cx, cy, r, line, edge, band, level = 160.0, 120.0, 100.0, 40.0, 3.0, 20.0, 0.4
+    yy, xx = np.mgrid[0:240, 0:320].astype(float)
+    depth = yy - cy - line
+    mask = np.where(depth < 0, 1.0, np.where((depth > edge) & (depth < edge + band), level, 0.0))
+    p = jnp.asarray([cx, cy, r, 0.0, line, 0.0, 0.0, 0.0, 0.0])
+    shift = jax.jit(_line_shift)
+    mass, rms, fade = shift(jnp.asarray(mask), p, jnp.asarray(1.0), jnp.asarray(edge))
+    # Reference: a sum over the pixels of the ring's disc below the edge zone (1 px^2 each).
+    rho = r - max(2.0, 0.04 * r)
+    inside = (np.hypot(xx - cx, yy - cy) < rho) & (depth > edge)
+    chord = 2.0 * math.sqrt(rho**2 - line**2)
+    ref_mass = float(np.sum(mask[inside])) / chord
+    ref_rms = math.sqrt(2.0 * float(np.sum((mask * (depth - edge))[inside])) / chord)
+    assert float(mass) == pytest.approx(ref_mass, rel=0.03)
+    assert float(rms) == pytest.approx(ref_rms, rel=0.03)
+    band_up = (np.hypot(xx - cx, yy - cy) < rho) & (depth < -edge) & (depth > -(rho - line))
+    amb = mask * (1.0 - mask)
+    ref_fade = float(np.sum(amb[inside]) + np.sum(amb[band_up])) / chord
+    assert float(fade) == pytest.approx(ref_fade, rel=0.03)
+    # Nothing below the edge zone: no shift (a clean frame keeps its sigma).
+    clean = np.where(depth < 0, 1.0, 0.0)
+    _, none, no_fade = shift(jnp.asarray(clean), p, jnp.asarray(1.0), jnp.asarray(edge))
+    assert float(none) < 1e-3 and float(no_fade) < 1e-3
+
+
+def test_line_shift_std_moves_z0_by_the_shift() -> None:
+    # A flat soil line 40 px below O on a rim of 100 px: z0 = r - b, so moving the line down by
+    # 2.5 px changes z0 by 2.5 px, i.e. 2.5 * R / r mm.
+    from sinkjax.soft.checks import Plausibility, line_shift_std
+
+    z = jnp.zeros(())
+    check = Plausibility(z, z, z, z, z, z, z + 1.0, jnp.asarray(2.5), jnp.asarray(0))
+    p = jnp.asarray([0.0, 0.0, 100.0, 0.0, 40.0, 0.0, 40.0, 0.0, 40.0])
+    std = line_shift_std(p, check, 140.0)
+    assert float(std[0]) == pytest.approx(2.5 * 140.0 / 100.0, rel=1e-6)
+    # The ends at v = 40 on the rim: theta = acos(40 / 100); d theta / d v = 1 / (r sin theta).
+    dtheta = 2.5 / (100.0 * math.sin(math.acos(0.4)))
+    assert float(std[1]) == pytest.approx(dtheta, rel=1e-3)
+    assert float(std[2]) == pytest.approx(dtheta, rel=1e-3)

@@ -28,6 +28,14 @@ weighs the model against its own inputs, with no threshold taken from the render
   at both ends it looks like what is above (the background), the "boundary" is an edge on the
   wheel itself (soil-coloured dust on its lower part, a shadow line).
 
+- **where the soil line could be** (a sigma, not a test): dust that fades the wheel towards the
+  soil's colour, or noise, leaves the mask neither wheel nor soil over a band around the line,
+  and the line sits somewhere in it. Outside the outline's own edge zone, the wheel the mask
+  keeps below the line (read as the probability that the line is deeper) and the width of the
+  mask's fade across it give how far the line could be, in px; the measurements' change for a
+  line moved that far (:func:`line_shift_std`) adds to sigma in quadrature. On a frame whose
+  mask has a sharp soil edge both are about zero and sigma is unchanged.
+
 Frames failing any test get status ``implausible`` (their message names the test) instead of a
 confident number. Everything is pure JAX, jit- and vmap-able.
 """
@@ -39,9 +47,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .model import Evidence, end_point, residuals
+from .model import Evidence, end_point, measurements, residuals
 
 N_RING_SAMPLES = 256
+N_BAND_DEPTH, N_BAND_ALONG = 48, 64  # samples of the disc segment below the soil line
 # 99.9 % one-sided normal quantile: the tests' false-alarm rate on a frame the model explains.
 _Z_999 = 3.09
 # Correlation length of neighbouring outline points, in points: the uncertainty model's sigma
@@ -56,8 +65,10 @@ class Plausibility(eqx.Module):
     ``rim_f`` (rim residual variance over the boundary's local edge noise variance) and
     ``rim_f_limit`` (its 99.9 % point), ``above_centre`` (fraction of boundary weight above O),
     ``end_gap_px`` (the larger distance from a boundary end to the rim), ``chord_ratio``
-    (boundary x-span over the chord z0 implies); ``sigma_scale`` multiplies sigma; ``code`` is
-    0 when plausible, else 1 + the index of the first failed test in :data:`TESTS`.
+    (boundary x-span over the chord z0 implies); ``sigma_scale`` multiplies sigma;
+    ``line_shift_px`` (how far from the fitted soil line the mask says the line could be, root
+    mean square, px) adds to sigma in quadrature (:func:`line_shift_std`); ``code``
+    is 0 when plausible, else 1 + the index of the first failed test in :data:`TESTS`.
     """
 
     ring_disagreement: Float[Array, ""]
@@ -67,6 +78,7 @@ class Plausibility(eqx.Module):
     end_gap_px: Float[Array, ""]
     chord_ratio: Float[Array, ""]
     sigma_scale: Float[Array, ""]
+    line_shift_px: Float[Array, ""]
     code: Array
 
     @property
@@ -108,6 +120,59 @@ def _ring_disagreement(
     wrong = jnp.where(wheel_side, 1.0 - m, m)
     n_seen = jnp.sum(seen.astype(dt))
     return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
+
+
+def _segment(
+    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, start_px: Array, side: float
+) -> tuple[Array, Array, Array]:
+    """The mask sampled on the disc (inside the ring of :func:`_ring_disagreement`) from
+    ``start_px`` on below (``side`` +1) or above (-1) the equivalent line, as deep as the segment
+    below it reaches: (mask, depth beyond ``start_px``, area px^2 per chord px) per sample."""
+    height, width = mask.shape
+    dt = mask.dtype
+    r, k = p[2], p[3]
+    rho = r - jnp.maximum(2.0, 0.04 * r)
+    norm = jnp.sqrt(1.0 + k * k)
+    d0 = p[4] / norm  # the line's distance below O along its downward normal
+    n, t = jnp.stack([-k, 1.0]) / norm, jnp.stack([1.0, k]) / norm
+    depth = jnp.maximum(rho - d0 - start_px, 0.0)
+    frac_s = (jnp.arange(N_BAND_DEPTH, dtype=dt) + 0.5) / N_BAND_DEPTH
+    frac_a = (jnp.arange(N_BAND_ALONG, dtype=dt) + 0.5) / N_BAND_ALONG * 2.0 - 1.0
+    s = start_px + frac_s * depth  # distance from the line, px
+    off = d0 + side * s
+    half = jnp.sqrt(jnp.maximum(rho * rho - off**2, 1e-12))
+    a = frac_a[None, :] * half[:, None]
+    x = p[0] + sign * (a * t[0] + off[:, None] * n[0])
+    y = p[1] + a * t[1] + off[:, None] * n[1]
+    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    m = jnp.where(seen, _bilinear(mask, x.ravel(), y.ravel()).reshape(x.shape), 0.0)
+    chord = 2.0 * jnp.sqrt(jnp.maximum(rho * rho - d0 * d0, 1.0))
+    area = (2.0 * half / N_BAND_ALONG * depth / N_BAND_DEPTH)[:, None] / chord
+    return m, jnp.broadcast_to((s - start_px)[:, None], m.shape), jnp.broadcast_to(area, m.shape)
+
+
+def _line_shift(
+    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, edge_px: Array
+) -> tuple[Array, Array, Array]:
+    """How far the soil line could be from the fitted one by the mask's own account, px:
+    (mass, rms, fade).
+
+    Mask structure within ``edge_px`` (the outline's own search half-width) of the equivalent
+    line is the edge itself and is left out. Below that zone, read the soft mask at depth s as
+    the probability that the soil line lies deeper than s (wheel there means the line is below
+    it): ``mass``, the mask's integral per unit of chord, is then the expected depth D of the
+    true line below the fitted one and ``rms`` = sqrt(E[D^2]) = sqrt(2 * integral of s * mask)
+    (E[D^2] = 2 * integral of s P(D > s) ds). ``fade`` is the width of the mask's transition
+    across the line on both sides of the edge zone (as deep above as the segment reaches
+    below), as the integral of mask * (1 - mask) per unit of chord: a mask that fades from wheel
+    to soil over a band of width L (soil-coloured dust, noise) gives L / 6, a sharp edge 0.
+    """
+    m, s, area = _segment(mask, p, sign, edge_px, 1.0)
+    m_up, _, area_up = _segment(mask, p, sign, edge_px, -1.0)
+    mass = jnp.sum(m * area)
+    second = 2.0 * jnp.sum(m * area * s)
+    fade = jnp.sum(m * (1.0 - m) * area) + jnp.sum(m_up * (1.0 - m_up) * area_up)
+    return mass, jnp.sqrt(second + 1e-12), fade
 
 
 def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
@@ -203,6 +268,11 @@ def plausibility(
     )
     code = jnp.where(jnp.any(fails), 1 + jnp.argmax(fails), 0).astype(jnp.int32)
     sigma_scale = jnp.sqrt(jnp.where(has_ends, jnp.maximum(rim_f, 1.0), 1.0))
+    edge_px = jnp.asarray(ev.settings.refine_half_width_px, dt)
+    _, shift_rms, fade = _line_shift(mask, p, ev.sign, edge_px)
+    # The line may sit anywhere in a fade of width L = 6 fade: a uniform spread of L / sqrt(12)
+    # = sqrt(3) fade about it, on top of the one-sided shift the mask's wheel below it implies.
+    shift = jnp.sqrt(shift_rms**2 + 3.0 * fade**2)
     return Plausibility(
         ring_disagreement=ring,
         rim_f=rim_f,
@@ -211,8 +281,20 @@ def plausibility(
         end_gap_px=gap,
         chord_ratio=chord_ratio,
         sigma_scale=sigma_scale,
+        line_shift_px=jnp.where(contact, shift, 0.0),
         code=code,
     )
+
+
+def line_shift_std(
+    p: Float[Array, " 9"], check: Plausibility, wheel_radius_mm: float | Float[Array, ""]
+) -> Float[Array, " 3"]:
+    """The sigma (z0 mm, theta1 rad, theta2 rad) of the soil line's ambiguity: the measurements'
+    change when the equivalent line and both end lines move down by ``check.line_shift_px``."""
+    k = p[3]
+    down = jnp.zeros_like(p).at[4].set(jnp.sqrt(1.0 + k * k)).at[6].set(1.0).at[8].set(1.0)
+    g = jax.jacfwd(measurements)(p, wheel_radius_mm)
+    return jnp.abs(g @ down) * check.line_shift_px
 
 
 def message(code: int) -> str:

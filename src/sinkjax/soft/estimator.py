@@ -18,7 +18,7 @@ from ..geometry import travel_sign
 from ..rig import Rig, SegmentationParams, rim_hint_range_px
 from ..status import Status
 from .adaptive import default_segmenter
-from .checks import plausibility
+from .checks import line_shift_std, plausibility
 from .fit import build_evidence, fit
 from .hough import Circle, hough_rim
 from .model import end_point, measurements
@@ -132,6 +132,7 @@ def finish(
     contact = jnp.sum(ev.w_line) >= s.min_boundary_points
     check = plausibility(image, mask, p, ev, contact)
     std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
+    std = jnp.sqrt(std**2 + line_shift_std(p, check, wheel_radius_mm) ** 2)
     measured = jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code)
     # With the recording's rim, a soil boundary inside it is evidence enough of the wheel.
     seen = choice.seen | ((choice.prior_weight > 0) & contact)
