@@ -40,6 +40,8 @@ AGREE_FRACTION = 0.015
 # The recording's rim is known no better than this (px), whatever the consensus says: below it
 # lie the outline's own systematic errors (blur, JPEG), shared by every frame.
 MIN_RIM_STD_PX = 0.05
+# A frame's own circle counts as the rim moved only within this fraction of the recording's radius.
+MOVED_RADIUS_FRACTION = 0.2
 
 
 class RecordingRim(eqx.Module):
@@ -128,7 +130,11 @@ def choose_circle(
     own = jax.lax.cond(need, own_rim, lambda: rec)
     strong_own = own.support >= settings.min_rim_support
     recorded = rim.use >= 0.5
-    moved = recorded & need & strong_own & ~agree(own, rec)
+    # A bumped camera shifts the rim; it hardly changes its size (the wheel stays at the same
+    # distance). A circle of another size is some other round edge (hub, hole, a lug's arc), so
+    # the rim is hidden, not moved.
+    same_size = jnp.abs(own.r_px - rec.r_px) <= MOVED_RADIUS_FRACTION * rec.r_px
+    moved = recorded & need & strong_own & same_size & ~agree(own, rec)
     use_rec = recorded & ~moved
     circle = jax.tree_util.tree_map(lambda a, b: jnp.where(use_rec, a, b), rec, own)
     # A hidden rim keeps the recording's circle; the frame shows no wheel only when its own rim

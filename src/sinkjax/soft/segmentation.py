@@ -106,6 +106,8 @@ EDGE_ROWS_FRACTION = 0.03
 # A pixel is vetoed when it lies nearer the other reference by this fraction of the references'
 # separation: a blurred edge then stays with the band, which locates it to sub-pixel precision.
 VETO_FRACTION = 0.25
+# The smallest spread of the wheel's chromaticity taken as real (1 % saturation: sensor noise).
+MIN_SPREAD = 0.02
 
 
 def _median_spread(q: Float[Array, "N 2"]) -> tuple[Float[Array, " 2"], Float[Array, ""]]:
@@ -137,7 +139,7 @@ def reference_mask(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H 
     the confidence rectangle, the background's over the image's top rows, the soil's over its
     bottom rows. Each pixel is compared with the perpendicular bisector of wheel and reference
     (the nearest-mean rule), so the soil's own colour, not a band around the wheel's, decides.
-    A reference closer to the wheel's than the wheel's own spread (MAD) is the wheel itself (a
+    A reference closer to the wheel's than twice the wheel's own spread (MAD) is the wheel itself (a
     strip the wheel fills) and vetoes nothing.
     """
     height = image.shape[0]
@@ -155,7 +157,10 @@ def reference_mask(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H 
         d_c = jnp.sum((q - mu_c[None, None, :]) ** 2, axis=-1)
         margin = (d_c - d_w) / (2.0 * sep)
         m_c = jax.nn.sigmoid((margin + VETO_FRACTION * sep) / (0.05 * sep + 1e-3))
-        gate = jax.nn.sigmoid((sep - 1.0 * sd_w) / (0.25 * sd_w + 1e-3))
+        # A reference within two spreads of the wheel's is the wheel itself; the spread is at
+        # least the chromaticity's sensor/JPEG noise, so a clean uniform wheel gates it fully off.
+        spread = jnp.maximum(sd_w, MIN_SPREAD)
+        gate = jax.nn.sigmoid((sep - 2.0 * spread) / (0.25 * spread))
         out = out * (1.0 - gate * (1.0 - m_c))
     return out
 
