@@ -54,7 +54,8 @@ N_BAND_DEPTH, N_BAND_ALONG = 48, 64  # samples of the disc segment below the soi
 # 99.9 % one-sided normal quantile: the tests' false-alarm rate on a frame the model explains.
 _Z_999 = 3.09
 # Correlation length of neighbouring outline points, in points: the uncertainty model's sigma
-# scale is its square root (soft.uncertainty.UncertaintyModel.scale_sinkage = 1.6).
+# scales (1.4-3.1 as standard deviations, soft.uncertainty.UncertaintyModel) are of its
+# square root's order.
 CORRELATION_POINTS = 1.6**2
 
 

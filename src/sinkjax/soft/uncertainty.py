@@ -92,15 +92,15 @@ class UncertaintyModel(eqx.Module):
     ``UncertaintyModel.raw()`` turns all of it off (scale 1, no floor, Gaussian).
     """
 
-    scale_sinkage: float = 1.283
-    scale_theta1: float = 1.891
-    scale_theta2: float = 1.967
-    floor_sinkage_px: float = 0.06
-    floor_theta1_deg: float = 0.0
+    scale_sinkage: float = 1.091
+    scale_theta1: float = 1.687
+    scale_theta2: float = 1.825
+    floor_sinkage_px: float = 0.065
+    floor_theta1_deg: float = 0.021
     floor_theta2_deg: float = 0.0
-    dof_sinkage: float = 3.47
-    dof_theta1: float = 3.47
-    dof_theta2: float = 3.47
+    dof_sinkage: float = 5.41
+    dof_theta1: float = 2.86
+    dof_theta2: float = 3.65
 
     @staticmethod
     def raw() -> UncertaintyModel:
