@@ -120,17 +120,16 @@ def _median_spread(q: Float[Array, "N 2"]) -> tuple[Float[Array, " 2"], Float[Ar
 
 
 def _rect_values(q: Float[Array, "H W 2"], rect: Rect) -> Float[Array, "N 2"]:
-    # The rectangle's pixels: sliced when static, else a RECT_SAMPLES^2 grid of nearest pixels
-    # spread evenly over it (a traced rectangle has no static size; a median over a masked whole
-    # image would sort every pixel of the frame, 100+ ms at 640x480 on a CPU).
+    # A RECT_SAMPLES^2 grid of nearest pixels spread evenly over the rectangle, static or traced
+    # alike (a traced rectangle has no static size; a median over a masked whole image would sort
+    # every pixel of the frame, 100+ ms at 640x480 on a CPU).
     height, width = q.shape[:2]
-    if isinstance(rect, tuple | list):
-        x, y, w, h = rect
-        return q[y : y + h, x : x + w].reshape(-1, 2)
-    x0, y0, w0, h0 = (rect[i] for i in range(4))
-    frac = (jnp.arange(RECT_SAMPLES) + 0.5) / RECT_SAMPLES
-    xs = jnp.clip(x0 + jnp.floor(frac * w0).astype(rect.dtype), 0, width - 1)
-    ys = jnp.clip(y0 + jnp.floor(frac * h0).astype(rect.dtype), 0, height - 1)
+    r = jnp.asarray(rect, jnp.int32)
+    x0, y0, w0, h0 = (r[i] for i in range(4))
+    dt = q.dtype
+    frac = (jnp.arange(RECT_SAMPLES, dtype=dt) + 0.5) / RECT_SAMPLES
+    xs = jnp.clip(x0 + jnp.floor(frac * w0.astype(dt)).astype(r.dtype), 0, width - 1)
+    ys = jnp.clip(y0 + jnp.floor(frac * h0.astype(dt)).astype(r.dtype), 0, height - 1)
     return q[ys[:, None], xs[None, :]].reshape(-1, 2)
 
 
