@@ -94,13 +94,13 @@ def coloured_identical(seed: int, n: int, width: int, height: int) -> dict[str, 
         rig = S.rig_for(scenes[0])
         rect = jnp.asarray(rig_arrays(rig).rect_px)
         images = [S.render(sc, seed * 100 + i)[0] for i, sc in enumerate(scenes)]
-        a = _measure(images, rig, ThresholdSegmenter())
+        a = _measure(images, rig, ThresholdSegmenter(rig.segmentation))
         b = _measure(images, rig)
         for img, x, y in zip(images, a, b, strict=True):
             vx = np.array([x.sinkage_mm, x.theta1_deg, x.theta2_deg], dtype=float)
             vy = np.array([y.sinkage_mm, y.theta1_deg, y.theta2_deg], dtype=float)
             equal = x.status == y.status and np.allclose(
-                vx, vy, rtol=1e-9, atol=1e-9, equal_nan=True
+                vx, vy, rtol=1e-5, atol=1e-3, equal_nan=True
             )
             checked += 1
             same += int(equal)
@@ -149,7 +149,8 @@ def markdown(summary: dict, coloured: dict, args: argparse.Namespace, secs: floa
     lines += [
         "",
         f"Coloured presets {COLOURED}: {coloured['bit_identical']} of {coloured['frames']} "
-        f"frames equal to the H/S mask's (float32, to 1e-5); hue+saturation chosen on "
+        f"frames equal to the H/S mask's (float32 rounding: within 1e-3 mm and deg); "
+        "hue+saturation chosen on "
         f"{coloured['hue_saturation_chosen']}.",
     ]
     return "\n".join(lines) + "\n"
