@@ -438,7 +438,7 @@ def test_no_contact_with_finite_numbers_stays(tmp_path):
 
 # --- labels ----------------------------------------------------------------------------------
 
-BAD_LABEL_CELLS = ["inf", "-inf", "nan", "NaN", "1e999", "Infinity", "-1", "181", "12 mm", "1,5"]
+BAD_LABEL_CELLS = ["inf", "-inf", "nan", "NaN", "1e999", "Infinity", "-181", "181", "12 mm", "1,5"]
 
 
 @pytest.mark.parametrize("cell", BAD_LABEL_CELLS)

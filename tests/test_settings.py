@@ -18,7 +18,10 @@ from sinkjax.status import Status
 
 # Frame 1 of a 320x240 "full" recording (seed 3), measured in float64 by the estimator before its
 # constants became SoftSettings: (sinkage mm, theta1 rad, theta2 rad, sinkage sigma mm).
-REFERENCE = (39.27937802581891, 0.8261988475505808, 0.7434968779841999, 0.9735682884382891)
+# Pinned values of this frame with the defaults (re-pinned when the mask veto, the soil-line
+# sigma and the refitted uncertainty model changed them by design; the test is that baked and
+# traced settings agree and reproduce them).
+REFERENCE = (39.31627853395785, 0.8262396697853777, 0.743467958811376, 0.8484177447265409)
 
 
 @functools.cache

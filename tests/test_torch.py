@@ -19,7 +19,7 @@ from sinkjax import SegmentationParams  # noqa: E402
 from sinkjax.rig import rect_problem  # noqa: E402
 from sinkjax.soft.colour import rgb_to_hsi as jax_rgb_to_hsi  # noqa: E402
 from sinkjax.soft.estimator import measure_from_mask as jax_measure_from_mask  # noqa: E402
-from sinkjax.soft.segmentation import paper_mask, smooth, soft_open  # noqa: E402
+from sinkjax.soft.segmentation import paper_mask, smooth, soft_open, wheel_mask  # noqa: E402
 from sinkjax.synth import recording_scenes, render, rig_for  # noqa: E402
 from sinkjax.torch.bridge import _to_jax, _to_torch  # noqa: E402
 from sinkjax.torch.jax_bridge import (  # noqa: E402
@@ -347,9 +347,18 @@ def test_bridge_from_mask(frames, reference) -> None:
 
 
 @pytest.mark.slow
-def test_bridge_from_image(frames, reference) -> None:
-    """measure_torch without masks: JAX segments; gradients reach the thresholds."""
+def test_bridge_from_image(frames) -> None:
+    """measure_torch without masks: JAX segments (``wheel_mask``: the paper's band and the
+    reference veto), so the reference is JAX's own estimate from that mask; gradients reach the
+    thresholds."""
     imgs, rig = frames
+    kw = dict(travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
+
+    def one(im):
+        mask = wheel_mask(im, rig.segmentation, rig.confidence_rect)
+        return estimate_values(jax_measure_from_mask(im, mask, **kw))
+
+    reference = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(imgs)))
     seg = {
         n: torch.tensor(v, dtype=torch.float64, requires_grad=True)
         for n, v in rig.segmentation.as_dict().items()
