@@ -173,7 +173,9 @@ def _line_shift(
     mass = jnp.sum(m * area)
     second = 2.0 * jnp.sum(m * area * s)
     fade = jnp.sum(m * (1.0 - m) * area) + jnp.sum(m_up * (1.0 - m_up) * area_up)
-    return mass, jnp.sqrt(second + 1e-12), fade
+    # A mask pushed a little below 0 (a gradient check, a learned segmenter) must not make the
+    # second moment negative: a NaN sigma.
+    return mass, jnp.sqrt(jnp.maximum(second, 0.0) + 1e-12), fade
 
 
 def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
