@@ -241,7 +241,7 @@ def test_residuals_have_finite_weight_gradients_at_zero_weight() -> None:
         sign=jnp.asarray(1.0),
         start=jnp.zeros(_model.N_PARAMS),
     )
-    p = jnp.asarray([1.0, 2.0, 40.0, 0.1, 20.0, 0.1, 20.0, -0.1, 20.0])
+    p = jnp.asarray([1.0, 2.0, 40.0, 0.1, 20.0, 0.1, 20.0, -0.1, 20.0, 0.01, -0.02])
 
     def total(fn, w_line):
         return jnp.sum(fn(p, eqx.tree_at(lambda e: e.w_line, ev, w_line)) ** 3)

@@ -189,13 +189,22 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
     u = bx - cx
     w_a = jnp.asarray(np.r_[np.zeros(n_rim), (u > 30).astype(float)])
     w_b = jnp.asarray(np.r_[np.zeros(n_rim), (u < -32).astype(float)])
-    start = jnp.asarray([cx + 1.5, cy - 1.0, r + 2.0, 0.0, 38.0, 0.0, 40.0, 0.0, 40.0])
-    ev = Evidence(x, y, w_rim, w_line, w_a, w_b, jnp.asarray(1.0), start)
+    start = jnp.asarray([cx + 1.5, cy - 1.0, r + 2.0, 0.0, 38.0, 0.0, 40.0, 0.0, 40.0, 0.0, 0.0])
+    k_ref, b_ref = equivalent_line(jnp.asarray(u), jnp.asarray(by - cy))
+    # The ends' curves bend away from the end-most boundary points, and their offset priors are
+    # anchored on the boundary's line below them (as build_evidence sets both).
+    ends_x = np.asarray([bx[-1], bx[0]])
+    ev = Evidence(
+        x, y, w_rim, w_line, w_a, w_b, jnp.asarray(1.0), start,
+        end_origin_px=jnp.asarray(np.stack([ends_x, [by[-1], by[0]]], 1)),
+        end_anchor_px=jnp.asarray(
+            np.stack([ends_x, cy + float(k_ref) * (ends_x - cx) + float(b_ref)], 1)
+        ),
+    )  # fmt: skip
     res = fit(ev)
     assert bool(res.ok)
     p = np.asarray(res.params)
     np.testing.assert_allclose(p[:3], [cx, cy, r], atol=1e-3)  # LM stops at rtol 1e-5
-    k_ref, b_ref = equivalent_line(jnp.asarray(u), jnp.asarray(by - cy))
     assert p[3] == pytest.approx(float(k_ref), abs=1e-5)
     assert p[4] == pytest.approx(float(b_ref), abs=1e-3)
     # Delta method: the reported raw sigma equals sqrt(g C g) with g by finite differences.
@@ -209,7 +218,7 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
                 - np.asarray(measurements(res.params - eps * e))
             )
             / (2 * eps)
-            for e in np.eye(9)
+            for e in np.eye(len(p))
         ],
         1,
     )

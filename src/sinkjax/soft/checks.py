@@ -105,7 +105,7 @@ def _bilinear(a: Float[Array, "H W"], x: Array, y: Array) -> Array:
 
 
 def _ring_disagreement(
-    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, contact: Array
+    mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
 ) -> Array:
     height, width = mask.shape
     dt = mask.dtype
@@ -124,7 +124,7 @@ def _ring_disagreement(
 
 
 def _segment(
-    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, start_px: Array, side: float
+    mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, start_px: Array, side: float
 ) -> tuple[Array, Array, Array]:
     """The mask sampled on the disc (inside the ring of :func:`_ring_disagreement`) from
     ``start_px`` on below (``side`` +1) or above (-1) the equivalent line, as deep as the segment
@@ -153,7 +153,7 @@ def _segment(
 
 
 def _line_shift(
-    mask: Float[Array, "H W"], p: Float[Array, " 9"], sign: Array, edge_px: Array
+    mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, edge_px: Array
 ) -> tuple[Array, Array, Array]:
     """How far the soil line could be from the fitted one by the mask's own account, px:
     (mass, rms, fade).
@@ -188,7 +188,7 @@ def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
     return jnp.stack([jnp.mean(_bilinear(image[..., c], xs, ys)) for c in range(3)])
 
 
-def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " 9"], sign: Array) -> Array:
+def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " P"], sign: Array) -> Array:
     """True when, at both ends, the image below the line's extension outside the rim looks more
     like the background above it than like the soil inside the rim (see the module docstring)."""
     height, width = image.shape[:2]
@@ -221,7 +221,7 @@ def _variance(res: Array, w: Array) -> tuple[Array, Array]:
 def plausibility(
     image: Float[Array, "H W 3"],
     mask: Float[Array, "H W"],
-    p: Float[Array, " 9"],
+    p: Float[Array, " P"],
     ev: Evidence,
     contact: Array,
 ) -> Plausibility:
@@ -290,7 +290,7 @@ def plausibility(
 
 
 def line_shift_std(
-    p: Float[Array, " 9"], check: Plausibility, wheel_radius_mm: float | Float[Array, ""]
+    p: Float[Array, " P"], check: Plausibility, wheel_radius_mm: float | Float[Array, ""]
 ) -> Float[Array, " 3"]:
     """The sigma (z0 mm, theta1 rad, theta2 rad) of the soil line's ambiguity: the measurements'
     change when the equivalent line and both end lines move down by ``check.line_shift_px``."""

@@ -193,6 +193,9 @@ def build_evidence(
     win = end_window_px(circle.r_px, s)
     near_a = jnp.hypot(u - u[i_a], v - v[i_a]) < win
     near_b = jnp.hypot(u - u[i_b], v - v[i_b]) < win
+    # One per point at the strongest, whatever scales the boundary's weights (a soft mask that
+    # leaves some wheel below the soil edge): the ends' priors are counted in boundary points.
+    w_end = w_end / jnp.maximum(jnp.max(w_end), 1e-6)
     w_a = w_end * near_a.astype(dt)
     w_b = w_end * near_b.astype(dt) * (~near_a).astype(dt)
 
@@ -206,9 +209,20 @@ def build_evidence(
     few_b = jnp.sum(w_b) < 3.0
     alpha_a, c_a = jnp.where(few_a, line_alpha, alpha_a), jnp.where(few_a, line_c, c_a)
     alpha_b, c_b = jnp.where(few_b, line_alpha, alpha_b), jnp.where(few_b, line_c, c_b)
+    zero = jnp.zeros((), dt)
     start = jnp.stack(
-        [circle.cx_px, circle.cy_px, circle.r_px, k0, b0, alpha_a, c_a, alpha_b, c_b]
+        [circle.cx_px, circle.cy_px, circle.r_px, k0, b0, alpha_a, c_a, alpha_b, c_b, zero, zero]
     ).astype(dt)
+    # Each end's curve bends away from its end-most point; the equivalent line's point in the
+    # same column anchors its offset prior (the line is the same image line whatever circle it
+    # was computed about: Eq. 1's least squares is invariant to shifting the frame).
+    origin = jnp.stack(
+        [
+            jnp.stack([outline.x_px[i_a], outline.y_px[i_a]]),
+            jnp.stack([outline.x_px[i_b], outline.y_px[i_b]]),
+        ]
+    )
+    u_origin = sign * (origin[:, 0] - circle.cx_px)
     return Evidence(
         x_px=outline.x_px,
         y_px=outline.y_px,
@@ -220,21 +234,29 @@ def build_evidence(
         start=start,
         settings=s,
         rim_px=start[:3],
+        # The ends' priors matter only where an end has few points of its own.
+        end_prior_scale=1.0 / (1.0 + jnp.stack([jnp.sum(w_a), jnp.sum(w_b)])),
+        end_origin_px=origin,
+        end_anchor_px=jnp.stack([origin[:, 0], circle.cy_px + k0 * u_origin + b0], axis=1),
         rim_weight=jnp.asarray(rim_weight, dt),
         inner_px=inner_px,
     )
 
 
 class FitResult(eqx.Module):
-    params: Float[Array, " 9"]
+    params: Float[Array, " P"]
     residuals: Float[Array, " N"]
     ok: Array
     steps: Array
 
 
-def fit(ev: Evidence, *, max_steps: int = 64) -> FitResult:
-    """The single joint Levenberg-Marquardt solve (implicit differentiation through it)."""
-    # Normal equations + Cholesky: the Jacobian is tall (thousands of points x 9 parameters) and
+def fit(ev: Evidence, *, max_steps: int = 256) -> FitResult:
+    """The single joint Levenberg-Marquardt solve (implicit differentiation through it).
+
+    Clean frames converge in a few tens of steps; a frame whose ends bend strongly under dust
+    may need more than a hundred (the ends' robust loss), and a cap it hits reads as
+    ``fit_failed``, so the cap is generous."""
+    # Normal equations + Cholesky: the Jacobian is tall (thousands of points x 11 parameters) and
     # well conditioned, and this is several times faster than QR on the CPU.
     # Tolerances on the step and the objective: 1e-4 is far below anything measurable (0.02 px on
     # a 150 px offset, 0.006 deg on an angle), while tighter ones sit at float32 rounding noise of

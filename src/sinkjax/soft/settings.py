@@ -52,24 +52,36 @@ class SoftSettings(eqx.Module):
     - ``end_clearance_px``: distance inside the rim that the boundary points holding the ends'
       tangents must keep: where the soil edge and the rim edge meet neither is clean, and
       smoothing rounds that corner over a few pixels, which would bend the tangents upward.
+      Kept small: where the surface meets the rim at a shallow angle, every pixel of clearance
+      drops several pixels of surface next to the end (the ends' robust loss, not the
+      clearance, keeps stray edges near the corner out).
     - ``wheel_below_scale_px``: soft scale of the wheel allowed below a boundary point in its
       column. Small: the top edge of a lightening hole near the soil has only a few pixels of
       wheel between the hole and the soil.
     - ``end_window_fraction``, ``end_window_min_px``, ``end_window_max_px``: length of boundary
-      used for each end's tangent, a fraction of the rim radius clipped to [min, max] px: short
-      enough to follow the surface.
+      used for each end's curve, a fraction of the rim radius clipped to [min, max] px. The end
+      curve bends (``sinkjax.soft.model``), so the window may be long enough to average noise
+      without tilting the tangent at the rim.
 
     Model and priors (``sinkjax.soft.model``):
 
     - ``rim_loss_scale_px``: scale of the redescending (Welsch) loss on the rim residuals.
+    - ``end_loss_scale_px``: the same for the ends' residuals: a lug's or a hole's edge a few
+      pixels off the surface, next to the end, loses its pull.
     - ``end_angle_prior_points``: pull of each end line's angle towards the equivalent line's,
       with the weight of this many boundary points at ``end_lever_px`` (px) from the end:
       nothing when the end window is well populated, but a short window (shallow sinkage) no
-      longer swings the end around.
+      longer swings the end around. Weak (a tenth of a point): the surface's tangent where it
+      meets the rim differs from the equivalent line's direction by many degrees on a bump or
+      a rut, and a strong pull would bias it by as much.
     - ``end_offset_prior_points``: likewise each end line's offset, in boundary points (default
       a twentieth): an end with no points of its own (the boundary never gets clear of the rim:
       very shallow contact) becomes the equivalent line, not a line held by nothing whose rim
-      intersection has unbounded variance.
+      intersection has unbounded variance. It is measured as the end line's distance from
+      the point where the equivalent line meets the rim on that side.
+    - ``end_bend_prior_points``: pull of each end curve's bend (curvature, 1/px) towards a
+      straight line, with the weight of this many boundary points at ``end_lever_px`` from the
+      end: a short or noisy window is not read as a strongly curved surface.
     - ``prior_weight``: pull of every parameter towards the starting point (per px^2 or rad^2).
       Tiny: it keeps the normal equations regular when a group has no points (no contact: no
       boundary, so no line) without moving well-determined parameters.
@@ -90,15 +102,17 @@ class SoftSettings(eqx.Module):
     chroma_weight: Float[Array, ""] = _scalar(0.25)
     rim_band_in_px: Float[Array, ""] = _scalar(1.5)
     rim_band_out_px: Float[Array, ""] = _scalar(4.0)
-    end_clearance_px: Float[Array, ""] = _scalar(3.5)
+    end_clearance_px: Float[Array, ""] = _scalar(2.0)
     wheel_below_scale_px: Float[Array, ""] = _scalar(0.75)
-    end_window_fraction: Float[Array, ""] = _scalar(0.12)
+    end_window_fraction: Float[Array, ""] = _scalar(0.2)
     end_window_min_px: Float[Array, ""] = _scalar(8.0)
-    end_window_max_px: Float[Array, ""] = _scalar(30.0)
+    end_window_max_px: Float[Array, ""] = _scalar(40.0)
     rim_loss_scale_px: Float[Array, ""] = _scalar(1.0)
-    end_angle_prior_points: Float[Array, ""] = _scalar(2.0)
+    end_loss_scale_px: Float[Array, ""] = _scalar(1.0)
+    end_angle_prior_points: Float[Array, ""] = _scalar(0.1)
     end_lever_px: Float[Array, ""] = _scalar(10.0)
     end_offset_prior_points: Float[Array, ""] = _scalar(0.05)
+    end_bend_prior_points: Float[Array, ""] = _scalar(2.0)
     prior_weight: Float[Array, ""] = _scalar(1e-4)
     min_rim_support: Float[Array, ""] = _scalar(0.2)
     min_boundary_points: Float[Array, ""] = _scalar(4.0)

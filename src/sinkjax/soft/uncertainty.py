@@ -92,15 +92,15 @@ class UncertaintyModel(eqx.Module):
     ``UncertaintyModel.raw()`` turns all of it off (scale 1, no floor, Gaussian).
     """
 
-    scale_sinkage: float = 1.091
-    scale_theta1: float = 1.687
-    scale_theta2: float = 1.825
-    floor_sinkage_px: float = 0.065
-    floor_theta1_deg: float = 0.021
-    floor_theta2_deg: float = 0.0
-    dof_sinkage: float = 5.41
-    dof_theta1: float = 2.86
-    dof_theta2: float = 3.65
+    scale_sinkage: float = 0.948
+    scale_theta1: float = 1.294
+    scale_theta2: float = 1.481
+    floor_sinkage_px: float = 0.06
+    floor_theta1_deg: float = 0.022
+    floor_theta2_deg: float = 0.012
+    dof_sinkage: float = 8.17
+    dof_theta1: float = 2.51
+    dof_theta2: float = 2.78
 
     @staticmethod
     def raw() -> UncertaintyModel:
@@ -156,7 +156,7 @@ def _group_scale(res: Array, w: Array) -> Array:
     return jnp.sqrt(jnp.maximum(var, 0.05**2))
 
 
-def covariance(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, "9 9"]:
+def covariance(p: Float[Array, " P"], ev: Evidence) -> Float[Array, "P P"]:
     """Parameter covariance (px^2, rad^2), scaled by each group's residual variance."""
     n = ev.x_px.shape[0]
     res = residuals(p, ev)
@@ -171,7 +171,7 @@ def covariance(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, "9 9"]:
             jnp.where(ev.w_rim > 0, s_rim, s_line),
             jnp.full((n,), s_end),
             jnp.ones((N_PARAMS,)),
-            jnp.full((4,), s_end),
+            jnp.full((6,), s_end),  # the ends' priors: angles, offsets, bends
             jnp.ones((3,)),  # the recording rim's prior is in px already
         ]
     )
@@ -181,8 +181,8 @@ def covariance(p: Float[Array, " 9"], ev: Evidence) -> Float[Array, "9 9"]:
 
 
 def measurement_std(
-    p: Float[Array, " 9"],
-    cov: Float[Array, "9 9"],
+    p: Float[Array, " P"],
+    cov: Float[Array, "P P"],
     wheel_radius_mm: float | Float[Array, ""] | None = None,
     model: UncertaintyModel | None = None,
 ) -> Float[Array, " 3"]:
