@@ -2,11 +2,12 @@
 
 Parameters (one flat vector, image pixels / radians):
 ``cx, cy, r`` the rim circle; ``k, b`` the equivalent line y = k x + b in the wheel frame (Eq. 1);
-``alpha_a, c_a`` and ``alpha_b, c_b`` the surface's tangents at the entry and exit ends (angle of
-the line, signed distance from O), whose intersections with the rim are A and B (Eqs. 2-3);
-``kappa_a, kappa_b`` (1/px) how the surface bends away from each tangent over the end's window, so
-that a bump or a rut next to the rim does not tilt the tangent (a straight line fitted over the
-window is the surface's mean direction there, not its direction at the rim). Every outline point
+``alpha_a, c_a`` and ``alpha_b, c_b`` the surface's tangents at the entry and exit ends (at the
+end-most boundary point, ``end_clearance_px`` inside the rim; angle of the line, signed distance
+from O), whose intersections with the rim are A and B (Eqs. 2-3); ``kappa_a, kappa_b`` (1/px) how
+the surface bends away from each tangent over the end's window, so that a bump or a rut next to
+the rim does not tilt the tangent (a straight line fitted over the window is the surface's mean
+direction there, not its direction at the end). Every outline point
 contributes to one residual slot per group, with a fixed weight that says how much it belongs to
 that group:
 
@@ -53,13 +54,14 @@ class Evidence(eqx.Module):
     # the boundary starts there, so its chord is the line's chord of a circle this much smaller.
     inner_px: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
     # Factor on each end's offset prior: 1 / (1 + the end's points), so that the prior holds an
-    # end with no points to the equivalent line and leaves a well-measured end (and the line
-    # and circle the prior also touches) alone.
+    # end with no points to the equivalent line and leaves a well-measured end alone.
     end_prior_scale: Float[Array, " 2"] = eqx.field(default_factory=lambda: jnp.ones(2))
     # Image points (x, y px) each end's curve bends away from its tangent: the end-most point
     # of each end's window (``fit.build_evidence``); and the points of the equivalent line of
     # the boundary (least squares in the image, so it does not depend on the circle) below or
-    # above them, which the ends' offset priors hold the end lines to.
+    # above them, which the ends' offset priors hold the end lines to. ``build_evidence`` sets
+    # both; an Evidence made by hand with ends must set them too (zeros bend from the image's
+    # corner).
     end_origin_px: Float[Array, "2 2"] = eqx.field(default_factory=lambda: jnp.zeros((2, 2)))
     end_anchor_px: Float[Array, "2 2"] = eqx.field(default_factory=lambda: jnp.zeros((2, 2)))
 
