@@ -103,12 +103,13 @@ def pseudo_huber(x: Float[Array, "*n"], delta: float = HUBER_DELTA) -> Float[Arr
 
 class FrameLoss(eqx.Module):
     """One frame as the loss saw it: estimates (sinkage_mm, theta1_deg, theta2_deg), status,
-    and the fitted rim circle (cx, cy, r px; no gradient)."""
+    the fitted rim circle (cx, cy, r px) and equivalent line (k, b px), without gradient."""
 
     values: Float[Array, "*n 3"]
     status: Int[Array, "*n"]
     loss: Float[Array, "*n"]
     circle: Float[Array, "*n 3"]
+    line: Float[Array, "*n 2"]
 
 
 def labelled_soil_side(
@@ -229,7 +230,8 @@ def _estimate_loss(
         mask, safe_circle, target, sign=sign, wheel_radius_mm=wheel_radius_mm
     )
     loss = loss + jnp.where(usable, CONTRAST_WEIGHT * contrast, 0.0)
-    return loss, FrameLoss(values=values, status=est.status, loss=loss, circle=circle)
+    line = jax.lax.stop_gradient(est.params[3:5])
+    return loss, FrameLoss(values=values, status=est.status, loss=loss, circle=circle, line=line)
 
 
 class LossAndGrad(eqx.Module):

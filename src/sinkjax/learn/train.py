@@ -26,6 +26,7 @@ from jaxtyping import Array, Float
 
 from ..calibration.loss import boundary_contrast, mask_frame_loss
 from ..soft.adaptive import default_segmenter
+from ..soft.checks import MAX_RING_DISAGREEMENT, ring_disagreement
 from ..status import Status
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter
@@ -33,6 +34,15 @@ from .segmenters import LearnedSegmenter
 _EPS = 1e-6
 # Weight of the labelled-soil-line term (per unit of boundary contrast, in [0, 2]) in training.
 CONTRAST_WEIGHT = 2.0
+# Backtracking (``train``): an update may raise its mini-batch's loss by this fraction at most
+# (mini-batch noise aside, a step along the gradient lowers it), halved at most this many times.
+MAX_RISE = 0.05
+MAX_HALVINGS = 3
+# Weight of the ring check's margin in training: a labelled contact frame's mask that disagrees
+# with its fitted rim and line over more than half of what the check allows pays this much per
+# check limit, so the gradient turns away before the frame reads ``implausible`` (a cliff in the
+# loss that no gradient sees coming). Scoring never includes it.
+RING_WEIGHT = 4.0
 
 
 def _bce(mask: Float[Array, "H W"], target: Float[Array, "H W"]) -> Float[Array, ""]:
@@ -41,7 +51,11 @@ def _bce(mask: Float[Array, "H W"], target: Float[Array, "H W"]) -> Float[Array,
 
 
 def _frame(
-    seg: LearnedSegmenter, batch: FrameBatch, pixel_weight: Array, contrast_weight: Array
+    seg: LearnedSegmenter,
+    batch: FrameBatch,
+    pixel_weight: Array,
+    contrast_weight: Array,
+    ring_weight: Array,
 ) -> tuple[Array, Array]:
     """Loss of ONE frame (``batch`` holds one row, unbatched) and its (values 3, status)."""
     image = batch.images_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
@@ -66,6 +80,11 @@ def _frame(
         mask, circle, t, sign=batch.travel_sign, wheel_radius_mm=batch.wheel_radius_mm
     )
     loss = loss + jnp.where(usable, contrast_weight * contrast, 0.0)
+    ring = ring_disagreement(
+        mask, jnp.concatenate([circle, seen.line]), batch.travel_sign, jnp.asarray(True)
+    )
+    margin = jax.nn.relu(ring / MAX_RING_DISAGREEMENT - 0.5)
+    loss = loss + jnp.where(usable, ring_weight * margin, 0.0)
     return loss + pixel, jnp.concatenate([seen.values, seen.status[None].astype(loss.dtype)])
 
 
@@ -79,16 +98,19 @@ def loss_and_grad(
     batch: FrameBatch,
     pixel_weight: float | Array = 0.0,
     contrast_weight: float | Array = 0.0,
+    ring_weight: float | Array = 0.0,
 ) -> tuple[Array, LearnedSegmenter, Array]:
     """(mean loss per labelled cell, its gradient w.r.t. the parameters, per-frame (values 3,
-    status) (N, 4)) over a batch. Gradients are taken frame by frame so that a frame whose fit
+    status) (N, 4)) over a batch, with the weights of :func:`train`'s optional terms.
+    Gradients are taken frame by frame so that a frame whose fit
     produced non-finite values (a NaN implicit gradient) drops out; its penalty still counts."""
     params, static = eqx.partition(seg, eqx.is_array)
     pw = jnp.asarray(pixel_weight, batch.targets.dtype)
     cw = jnp.asarray(contrast_weight, batch.targets.dtype)
+    rw = jnp.asarray(ring_weight, batch.targets.dtype)
 
     def one(p: LearnedSegmenter, row: FrameBatch) -> tuple[Array, Array]:
-        return _frame(eqx.combine(p, static), row, pw, cw)
+        return _frame(eqx.combine(p, static), row, pw, cw, rw)
 
     (losses, seen), grads = jax.vmap(jax.value_and_grad(one, has_aux=True), in_axes=(None, 0))(
         params, batch
@@ -114,7 +136,7 @@ def loss_and_grad(
 def evaluate(seg: LearnedSegmenter, batch: FrameBatch) -> tuple[Array, Array]:
     """(mean loss per labelled cell, per-frame (values 3, status) (N, 4)) without gradients."""
     zero = jnp.zeros((), batch.targets.dtype)
-    losses, seen = jax.vmap(lambda row: _frame(seg, row, zero, zero))(batch)
+    losses, seen = jax.vmap(lambda row: _frame(seg, row, zero, zero, zero))(batch)
     return jnp.sum(losses) / _n_cells(batch), seen
 
 
@@ -152,12 +174,49 @@ def _adam_step(
     seg: LearnedSegmenter,
     grad: LearnedSegmenter,
     state: optax.OptState,
+    scale: float = 1.0,
 ) -> tuple[LearnedSegmenter, optax.OptState]:
+    """One optimiser update, its step multiplied by ``scale`` (a backtracking try)."""
     # optax mixes Python floats with int32 step counts: allow that promotion here even where
     # the user runs JAX with strict dtype promotion.
     with jax.numpy_dtype_promotion("standard"):
         updates, state = optimiser.update(grad, state, eqx.filter(seg, eqx.is_array))
+        if scale != 1.0:
+            updates = jax.tree_util.tree_map(lambda u: u * scale, updates)
     return eqx.apply_updates(seg, updates), state
+
+
+@eqx.filter_jit
+def _batch_loss(
+    seg: LearnedSegmenter, batch: FrameBatch, weights: tuple[Array, Array, Array]
+) -> Array:
+    """The training objective of :func:`loss_and_grad` without its gradient."""
+    losses, _ = jax.vmap(lambda row: _frame(seg, row, *weights))(batch)
+    return jnp.sum(losses) / _n_cells(batch)
+
+
+def _backtracked_step(
+    optimiser: optax.GradientTransformation,
+    seg: LearnedSegmenter,
+    grad: LearnedSegmenter,
+    state: optax.OptState,
+    mini: FrameBatch,
+    loss: float,
+    weights: tuple[Array, Array, Array],
+) -> tuple[LearnedSegmenter, optax.OptState, int]:
+    """Adam's update if it does not raise the mini-batch's loss by more than ``MAX_RISE``;
+    else the same update halved, up to ``MAX_HALVINGS`` times; else no update (the moments
+    still learn the gradient). Returns the model, the state and the halvings taken (-1: none
+    accepted).
+
+    The loss is piecewise smooth: a frame whose fit stops passing the plausibility checks
+    jumps from its error to the penalty of a frame that does not measure, and a fixed-size
+    Adam step can cross such an edge (the loss of a few frames tripled in one step)."""
+    for halvings in range(MAX_HALVINGS + 1):
+        moved, moved_state = _adam_step(optimiser, seg, grad, state, 0.5**halvings)
+        if float(_batch_loss(moved, mini, weights)) <= loss * (1.0 + MAX_RISE):
+            return moved, moved_state, halvings
+    return seg, moved_state, -1
 
 
 def imitate(
@@ -227,7 +286,8 @@ def score(seg: LearnedSegmenter, batches: Sequence[FrameBatch]) -> FrameScores:
 class TrainResult:
     """The trained (best) model and how training went: ``history`` rows are (step, training
     mini-batch loss, held-out loss or NaN); scores on the training and held-out frames before
-    and after; ``best_step``; ``stopped_early``; wall-clock ``seconds``."""
+    and after; ``best_step``; ``stopped_early``; wall-clock ``seconds``; ``skipped_steps``: updates
+    that raised their mini-batch's loss even when halved three times, so were not taken."""
 
     segmenter: LearnedSegmenter
     history: list[tuple[int, float, float]]
@@ -238,13 +298,19 @@ class TrainResult:
     train_after: FrameScores
     held_before: FrameScores | None
     held_after: FrameScores | None
+    skipped_steps: int = 0
 
     def summary(self) -> str:
         """A few lines for the terminal."""
         lines = [
             f"trained {self.segmenter.kind} ({self.segmenter.n_parameters} parameters) for "
             f"{self.history[-1][0] if self.history else 0} steps in {self.seconds:.0f} s; "
-            f"best at step {self.best_step}{' (stopped early)' if self.stopped_early else ''}",
+            f"best at step {self.best_step}{' (stopped early)' if self.stopped_early else ''}"
+            + (
+                f"; {self.skipped_steps} updates not taken (each raised its mini-batch's loss)"
+                if self.skipped_steps
+                else ""
+            ),
             f"  training frames, start: {self.train_before.line()}",
             f"  training frames, end:   {self.train_after.line()}",
         ]
@@ -260,6 +326,7 @@ class TrainResult:
         out: dict[str, object] = {
             "steps": self.history[-1][0] if self.history else 0,
             "best_step": self.best_step,
+            "skipped_steps": self.skipped_steps,
             "stopped_early": self.stopped_early,
             "seconds": round(self.seconds, 1),
         }
@@ -282,6 +349,7 @@ def train(
     patience: int = 3,
     pixel_weight: float = 0.0,
     contrast_weight: float = CONTRAST_WEIGHT,
+    ring_weight: float = RING_WEIGHT,
     seed: int = 0,
     progress: bool = False,
 ) -> TrainResult:
@@ -292,7 +360,12 @@ def train(
     ``patience`` scorings without improvement. ``pixel_weight``: the exact-mask cross-entropy's
     weight (frames with masks only); ``contrast_weight``: the weight of the mask's contrast
     across the labelled soil line inside the fitted rim (a dense signal from the frame labels;
-    scoring never includes it). ``progress``: a tqdm bar on stderr.
+    scoring never includes it); ``ring_weight``: the weight of the ring check's margin (see
+    ``RING_WEIGHT``; scoring never includes it). ``progress``: a tqdm bar on stderr.
+
+    Each update is backtracked: one that raises its mini-batch's loss by more than 5 % is halved,
+    up to three times, or else not taken (``TrainResult.skipped_steps``); the loss has cliffs
+    where a frame stops passing the plausibility checks, and a fixed-size step can cross one.
     """
     from tqdm import tqdm
 
@@ -309,12 +382,20 @@ def train(
     held_before = score(seg, held_out) if held_out else None
     best, best_loss, best_step = seg, (held_before or train_before).loss, 0
     history: list[tuple[int, float, float]] = []
-    waited, stopped = 0, False
+    waited, stopped, skipped = 0, False, 0
+    weights = (
+        jnp.asarray(pixel_weight, batches[0].targets.dtype),
+        jnp.asarray(contrast_weight, batches[0].targets.dtype),
+        jnp.asarray(ring_weight, batches[0].targets.dtype),
+    )
     bar = tqdm(range(1, steps + 1), desc="train", unit="step", disable=not progress, leave=False)
     for step in bar:
         mini = _batches_of(batches, batch_size, rng)
-        loss, grad, _ = loss_and_grad(seg, mini, pixel_weight, contrast_weight)
-        seg, state = _adam_step(optimiser, seg, grad, state)
+        loss, grad, _ = loss_and_grad(seg, mini, *weights)
+        seg, state, halvings = _backtracked_step(
+            optimiser, seg, grad, state, mini, float(loss), weights
+        )
+        skipped += halvings < 0
         watched = float("nan")
         if step % eval_every == 0 or step == steps:
             watched = float(np.mean([float(evaluate(seg, b)[0]) for b in watch]))
@@ -338,4 +419,5 @@ def train(
         train_after=score(best, batches),
         held_before=held_before,
         held_after=score(best, held_out) if held_out else None,
+        skipped_steps=skipped,
     )

@@ -24,9 +24,11 @@ weighs the model against its own inputs, with no threshold taken from the render
   on the equivalent line (the boundary is the line's stretch inside the rim), to within half.
 - **the soil goes on beyond the rim**: the soil surface does not end at the wheel. Just outside
   the rim, past the lugs, below the equivalent line's extension, the image must look more like
-  the soil just inside the rim below the line than like what lies above the extension. When
-  at both ends it looks like what is above (the background), the "boundary" is an edge on the
-  wheel itself (soil-coloured dust on its lower part, a shadow line).
+  the soil just inside the rim below the line than like what lies above the extension, either
+  just below the extension or 3 % of the radius lower (a berm that the wheel pushed up falls
+  away beyond the rim). When at both ends it looks like what is above (the background) at
+  both depths, the "boundary" is an edge on the wheel itself (soil-coloured dust on its lower
+  part, a shadow line).
 
 - **where the soil line could be** (a sigma, not a test): dust that fades the wheel towards the
   soil's colour, or noise, leaves the mask neither wheel nor soil over a band around the line,
@@ -104,9 +106,12 @@ def _bilinear(a: Float[Array, "H W"], x: Array, y: Array) -> Array:
     return jax.scipy.ndimage.map_coordinates(a, [y, x], order=1, mode="nearest")
 
 
-def _ring_disagreement(
+def ring_disagreement(
     mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
 ) -> Array:
+    """Mean disagreement, in [0, 1], of the mask with the fitted model on a ring just inside
+    the rim: 1 - mask above the equivalent line (all round without ``contact``), the mask below
+    it. Differentiable w.r.t. ``mask``; the check fails above ``MAX_RING_DISAGREEMENT``."""
     height, width = mask.shape
     dt = mask.dtype
     r = p[2]
@@ -126,7 +131,7 @@ def _ring_disagreement(
 def _segment(
     mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, start_px: Array, side: float
 ) -> tuple[Array, Array, Array]:
-    """The mask sampled on the disc (inside the ring of :func:`_ring_disagreement`) from
+    """The mask sampled on the disc (inside the ring of :func:`ring_disagreement`) from
     ``start_px`` on below (``side`` +1) or above (-1) the equivalent line, as deep as the segment
     below it reaches: (mask, depth beyond ``start_px``, area px^2 per chord px) per sample."""
     height, width = mask.shape
@@ -199,15 +204,21 @@ def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " P"], sign: Arra
     for side, alpha, c in ((1.0, p[5], p[6]), (-1.0, p[7], p[8])):
         e = end_point(alpha, c, r, side)
         t = side * jnp.stack([1.0, k]) / norm  # along the line, away from the wheel
-        pts = (e - 0.1 * r * t + 4.0 * n, e + 0.15 * r * t + 4.0 * n, e + 0.15 * r * t - 6.0 * n)
+        # Below the extension, just under it and 3 % of the radius further down: a
+        # surface that falls away beyond the rim (a berm the wheel pushed up) is soil there.
+        out = e + 0.15 * r * t
+        pts = (e - 0.1 * r * t + 4.0 * n, out + 4.0 * n, out + (4.0 + 0.03 * r) * n, out - 6.0 * n)
         xy = [(p[0] + sign * q[0], p[1] + q[1]) for q in pts]
         inside = jnp.all(
             jnp.stack([(x >= 2) & (x <= width - 3) & (y >= 2) & (y <= height - 3) for x, y in xy])
         )
-        c_in, c_out, c_up = (_patch_rgb(image, x, y) for x, y in xy)
+        c_in, c_out, c_low, c_up = (_patch_rgb(image, x, y) for x, y in xy)
         # Clearly more like the background: twice as close, and apart by more than 0.05 in RGB.
-        d_in, d_up = jnp.sum((c_out - c_in) ** 2), jnp.sum((c_out - c_up) ** 2)
-        lost.append(inside & (d_in > 4.0 * d_up + 0.05**2))
+        looks_up = [
+            jnp.sum((c - c_in) ** 2) > 4.0 * jnp.sum((c - c_up) ** 2) + 0.05**2
+            for c in (c_out, c_low)
+        ]
+        lost.append(inside & looks_up[0] & looks_up[1])
     return lost[0] & lost[1]
 
 
@@ -258,7 +269,7 @@ def plausibility(
     chord_ratio = span / chord
     chord_wrong = (chord_ratio < CHORD_RATIO_RANGE[0]) | (span / chord_full > CHORD_RATIO_RANGE[1])
 
-    ring = _ring_disagreement(mask, p, ev.sign, contact)
+    ring = ring_disagreement(mask, p, ev.sign, contact)
     clearance = ev.settings.end_clearance_px.astype(dt)
     fails = jnp.stack(
         [
