@@ -14,6 +14,7 @@ from sinkjax.soft.estimator import hidden_contact_std, measure
 from sinkjax.soft.fit import boundary_side
 from sinkjax.soft.rim import RecordingRim
 from sinkjax.soft.settings import SoftSettings
+from sinkjax.soft.shallow import envelope_line, shallow_boundary
 from sinkjax.status import Status
 
 CX, CY, R = 160.0, 100.0, 100.0
@@ -97,6 +98,55 @@ def test_hidden_sigma_matches_uniform_sinkage() -> None:
     assert std[0] == pytest.approx(120.0**-1 * np.sqrt(np.mean(z**2)), rel=1e-2)
     theta = np.arccos(1 - z / 120.0)
     assert std[1] == pytest.approx(np.sqrt(np.mean(theta**2)), rel=2e-2)
+
+
+def _lower_edge_uv(dip_at_deg: float, depth_px: float) -> tuple[np.ndarray, np.ndarray]:
+    u, dr = (np.asarray(a) for a in _lower_edge(dip_at_deg, depth_px))
+    phi = np.arctan2(u, np.sqrt(np.maximum((R + dr) ** 2 - u * u, 0.0)))
+    return (R + dr) * np.sin(phi), (R + dr) * np.cos(phi)
+
+
+def _with_lug_corners(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # Two lug corners at the rim's bottom: 6 points each, 3 px inside the rim, 40 px either side.
+    cu = np.concatenate([np.linspace(-42, -38, 6), np.linspace(38, 42, 6)])
+    cv = np.sqrt(R * R - cu * cu) - 3.0
+    return np.concatenate([u, cu]), np.concatenate([v, cv])
+
+
+@pytest.mark.parametrize("dip_at_deg", [0.0, -4.0])
+def test_envelope_finds_a_shallow_chord_beside_lug_corners(dip_at_deg: float) -> None:
+    # Reference: the constructed edge, a chord 1 px deep with slope -tan(angle), 0.1 px noise.
+    u, v = _lower_edge_uv(dip_at_deg, 1.0)
+    depth_in = np.sqrt(np.maximum(R * R - u * u, 0.0)) - v  # before the noise
+    chord, on_soil = depth_in > 0.25, depth_in > 0.05
+    v = v + np.random.default_rng(1).normal(0.0, 0.1, v.shape)
+    u, v = _with_lug_corners(u, v)
+    lower = jnp.ones(u.shape)
+    z, k, on = envelope_line(jnp.asarray(u), jnp.asarray(v), lower, jnp.asarray(R))
+    assert float(z) == pytest.approx(1.0, abs=0.1)
+    assert float(k) == pytest.approx(-np.tan(np.radians(dip_at_deg)), abs=0.01)
+    on = np.asarray(on)
+    assert not np.any(on[-12:])  # no lug corner
+    assert np.all(on_soil[on[:-12]]) and np.sum(on[:-12]) >= 0.6 * np.sum(chord)
+    use, _ = shallow_boundary(
+        jnp.asarray(u), jnp.asarray(v), lower, jnp.asarray(R), jnp.asarray(4.0), jnp.asarray(0.3)
+    )
+    assert bool(use)
+    # The offset test takes the lug corners (3 px inside the rim) for the soil.
+    dr = np.hypot(u, v) - R
+    inside = np.asarray(
+        boundary_side(jnp.asarray(u), jnp.asarray(dr), lower, jnp.asarray(0.3), SoftSettings())
+    )
+    assert np.all(inside[-12:])
+
+
+def test_envelope_sees_no_contact_on_a_bare_rim_with_lug_corners() -> None:
+    phi = np.linspace(-np.pi / 2, np.pi / 2, int(np.pi * R))
+    noise = np.random.default_rng(2).normal(0.0, 0.1, phi.shape)
+    u, v = _with_lug_corners((R + noise) * np.sin(phi), (R + noise) * np.cos(phi))
+    args = (jnp.asarray(u), jnp.asarray(v), jnp.ones(u.shape), jnp.asarray(R))
+    use, _ = shallow_boundary(*args, jnp.asarray(4.0), jnp.asarray(0.3))
+    assert not bool(use)
 
 
 def _lower_edge(dip_at_deg: float, depth_px: float) -> tuple[jnp.ndarray, jnp.ndarray]:

@@ -20,6 +20,7 @@ from .hough import Circle
 from .model import Evidence, residuals
 from .outline import Outline
 from .settings import SoftSettings
+from .shallow import shallow_boundary
 
 
 def end_window_px(r_px: Array, settings: SoftSettings) -> Array:
@@ -177,6 +178,10 @@ def build_evidence(
     rim_like = w * jax.nn.sigmoid((align - 0.75) / 0.05) * outer
     inner_px = inner_margin_px(u, v, dr, rim_like * is_rim.astype(dt), circle.r_px, rim_weight, s)
     inside = boundary_side(u, dr, lower, inner_px, s)
+    # A shallow contact against the recording's rim: the envelope of rim and soil line says
+    # which points are the soil (``soft.shallow``); offsets from the rim alone cannot.
+    use_env, on_env = shallow_boundary(u, v, lower, circle.r_px, s.min_boundary_points, inner_px)
+    inside = jnp.where((jnp.asarray(rim_weight, dt) > 0) & use_env, on_env, inside)
     # The margin the boundary actually starts at (the dip's only for a shallow contact).
     deep_weight = jnp.sum(jnp.where((dr < -s.rim_band_in_px) & (lower > 0.1), lower, 0.0))
     inner_px = jnp.where(deep_weight < s.min_boundary_points, inner_px, s.rim_band_in_px)
