@@ -68,13 +68,12 @@ def shallow_boundary(
     deeper than ``min_depth_px`` (what the rim edge's own error explains:
     ``fit.inner_margin_px``) and less deep than ``USE_BELOW_PX``, whose chord holds boundary
     weight ``min_points`` or more and ``MIN_CHORD_FILL`` outline points per px of its length."""
+    # Only comparisons (booleans) leave here: no gradient to stop.
     z, _, on = envelope_line(u, v, lower, r_px)
-    n_on = jnp.sum(jnp.where(on, jax.lax.stop_gradient(lower), 0.0))
-    r = jax.lax.stop_gradient(r_px)
-    chord = 2.0 * jnp.sqrt(2.0 * r * jnp.maximum(z - CHORD_MARGIN_PX, 0.0))
+    n_on = jnp.sum(jnp.where(on, lower, 0.0))
+    chord = 2.0 * jnp.sqrt(2.0 * r_px * jnp.maximum(z - CHORD_MARGIN_PX, 0.0))
     filled = jnp.sum(on.astype(u.dtype)) >= MIN_CHORD_FILL * chord
-    deep_enough = z > jax.lax.stop_gradient(min_depth_px)
-    use = deep_enough & (z < USE_BELOW_PX) & (n_on >= min_points) & filled
+    use = (z > min_depth_px) & (z < USE_BELOW_PX) & (n_on >= min_points) & filled
     return use, on
 
 
