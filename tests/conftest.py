@@ -21,6 +21,13 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+# Under `pytest -n N` (make test) the N workers share the machine's cores: each keeps to one
+# thread (XLA's and torch's pools, and those of the subprocesses it starts), or their pools
+# oversubscribe the cores and every test slows down several times.
+if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("SINKJAX_TEST_THREADS", "1") == "1":
+    os.environ["XLA_FLAGS"] += " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+    for _name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
 # The command line keeps compiled code in ~/.cache; tests that want it name a temporary folder.
 os.environ.setdefault("SINKJAX_CACHE_DIR", "off")
 

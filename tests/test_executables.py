@@ -31,19 +31,24 @@ def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> Non
         paths = sorted(tmp_path.glob("*.bin"))
         assert len(paths) == 3
         datas = [p.read_bytes() for p in paths]
-        for cut in (
+        # Each file spoilt its own way (truncated, its tail overwritten, not an export at all),
+        # all in one run: each must be found unusable and traced again, with the same numbers.
+        cuts = (
             lambda d: d[: len(d) // 2],
             lambda d: d[:-40] + b"x" * 40,
             lambda d: b"not a file",
-        ):
-            for path, data in zip(paths, datas, strict=True):
-                path.write_bytes(cut(data))
-            E.set_compiled_provider(ExecutableCache(tmp_path))  # a new process, in effect
-            with caplog.at_level(logging.INFO, logger="sinkjax"):
-                caplog.clear()
-                again = _numbers(E.estimate_batch([image], rig, ["f"]))
-            assert any("unusable" in m for m in caplog.messages)
-            assert again == fresh
+        )
+        for path, data, cut in zip(paths, datas, cuts, strict=True):
+            path.write_bytes(cut(data))
+        E.set_compiled_provider(ExecutableCache(tmp_path))  # a new process, in effect
+        with caplog.at_level(logging.INFO, logger="sinkjax"):
+            caplog.clear()
+            again = _numbers(E.estimate_batch([image], rig, ["f"]))
+        unusable = sorted(
+            {m.split(" unusable")[0].split()[-1] for m in caplog.messages if "unusable" in m}
+        )
+        assert unusable == [str(p) for p in paths]
+        assert again == fresh
         # Rewritten by the last run: the next loads it silently.
         E.set_compiled_provider(ExecutableCache(tmp_path))
         with caplog.at_level(logging.INFO, logger="sinkjax"):
