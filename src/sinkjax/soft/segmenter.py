@@ -20,11 +20,13 @@ from ..rig import SegmentationParams, rect_problem
 from .segmentation import Rect, wheel_mask
 
 # Codes for which features a segmenter separated wheel from soil with, per frame (the run
-# summary shows them). A segmenter that does not choose reports FEATURES_LEARNED.
+# summary shows them), and their names. A segmenter that does not choose reports
+# FEATURES_LEARNED. (Not sinkjax.learn.FEATURE_NAMES: those are the per-pixel inputs of the
+# learned segmenters.)
 FEATURES_HUE_SAT = 0
 FEATURES_INTENSITY = 1
 FEATURES_LEARNED = 2
-FEATURE_NAMES = {
+FEATURE_CHOICES = {
     FEATURES_HUE_SAT: "hue+saturation",
     FEATURES_INTENSITY: "intensity+texture",
     FEATURES_LEARNED: "learned",
