@@ -30,7 +30,7 @@ from sinkjax.classic.estimator import estimate_classic
 from sinkjax.soft.adaptive import AdaptiveSegmenter
 from sinkjax.soft.batch import SoftRecording
 from sinkjax.soft.estimator import rig_arrays
-from sinkjax.soft.segmenter import FEATURE_NAMES, Segmenter, ThresholdSegmenter
+from sinkjax.soft.segmenter import FEATURE_CHOICES, Segmenter, ThresholdSegmenter
 from sinkjax.synth.materials import MATERIAL_PRESETS
 
 RESULTS = Path(__file__).parent / "results"
@@ -60,7 +60,7 @@ def _row(preset: str, rec: int, i: int, truth: S.Truth, soft, feats, classic) ->
         "soft_status": str(soft.status),
         "soft_mm": soft.sinkage_mm,
         "soft_std_mm": soft.sinkage_std_mm,
-        "features": FEATURE_NAMES.get(int(feats), "none"),
+        "features": FEATURE_CHOICES.get(int(feats), "none"),
         "classic_status": str(classic.status),
         "classic_mm": classic.sinkage_mm,
         "classic_message": classic.message,

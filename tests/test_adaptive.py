@@ -84,3 +84,4 @@ def test_classic_says_no_wheel_without_colour(preset: str) -> None:
     res = estimate_classic(img, rig, "f")
     assert res.status == Status.NO_WHEEL
     assert "no colour" in res.message and "soft" in res.message
+    assert res.segmenter_features == "hue+saturation"  # what it tried

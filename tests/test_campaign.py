@@ -63,14 +63,24 @@ def test_compile_clock_counts_compiles_not_runs() -> None:
 
 
 def _fake_batch(images, rig, names):
-    """ok with sinkage = mean grey / 10 (and a sigma), no_contact for grey 30, no_wheel for 40."""
+    """ok with sinkage = mean grey / 10 (and a sigma), no_contact for grey 30, no_wheel for 40;
+    segmented by hue+saturation for grey 30, else by intensity+texture."""
     out = []
     for image, name in zip(images, names, strict=True):
         grey = float(image.mean())
+        features = "hue+saturation" if grey == 30 else "intensity+texture"
         if grey == 30:
-            out.append(FrameResult(image=name, status="no_contact", sinkage_mm=0.0))
+            out.append(
+                FrameResult(
+                    image=name, status="no_contact", sinkage_mm=0.0, segmenter_features=features
+                )
+            )
         elif grey == 40:
-            out.append(FrameResult(image=name, status="no_wheel", message="none"))
+            out.append(
+                FrameResult(
+                    image=name, status="no_wheel", message="none", segmenter_features=features
+                )
+            )
         else:
             out.append(
                 FrameResult(
@@ -82,6 +92,7 @@ def _fake_batch(images, rig, names):
                     theta1_std_deg=1.0,
                     theta2_deg=-grey,
                     theta2_std_deg=2.0,
+                    segmenter_features=features,
                 )
             )
     return out
@@ -127,6 +138,50 @@ def test_summary_counts_medians_and_ranges(tmp_path) -> None:
         "1",
         "",
     )
+
+
+def test_summary_says_which_features_segmented_each_recording(tmp_path, capsys) -> None:
+    from sinkjax.app.cli import main
+
+    a, b, c = (tmp_path / n for n in ("a", "b", "empty"))
+    for d in (a, b, c):
+        d.mkdir()
+    for i, grey in enumerate([10, 20, 60, 30, 40]):  # the fake: 30 hue+saturation, else i+t
+        _png(a / f"f{i}.png", grey)
+    (a / "f5.png").write_bytes(b"broken")  # never segmented
+    _png(b / "g0.png", 50)
+    (c / "x.png").write_bytes(b"")
+    rig = Rig(wheel_radius_mm=100.0, confidence_rect=(2, 2, 4, 4))
+    inputs = with_rig(expand_paths([a, b, c]), rig)
+    names = [r.name for r in inputs.recordings]
+    out = tmp_path / "results.csv"
+    run = estimate_to_csv(inputs, out, method=_fake_batch, summary_csv=tmp_path / "s.csv")
+    assert run.segmenter_lines() == [
+        "segmenter:",
+        f"  {names[0]}: intensity+texture (4), hue+saturation (1)",  # most frames first
+        f"  {names[1]}: intensity+texture (1 frame)",
+        f"  {names[2]}: no frame segmented",
+    ]
+    with open(tmp_path / "s.csv", newline="") as f:
+        cells = [r["segmenter"] for r in csv.DictReader(f)]
+    assert cells == ["intensity+texture (4), hue+saturation (1)", "intensity+texture (1 frame)", ""]
+    assert list(SUMMARY_COLUMNS[:3]) == ["recording", "rig", "segmenter"]
+    assert COLUMNS[-1] == "message" and "segmenter_features" not in COLUMNS  # the CSV contract
+
+    # --resume: only this run's frames are counted (the results CSV does not hold the features).
+    lines = out.read_text().splitlines(keepends=True)
+    out.write_text("".join(lines[:3]))  # header, f0, f1 kept
+    again = estimate_to_csv(inputs, out, method=_fake_batch, resume=True)
+    assert again.segmenter_lines()[:2] == [
+        "segmenter (frames measured in this run):",
+        f"  {names[0]}: intensity+texture (2), hue+saturation (1)",  # f2, f4; f3
+    ]
+    # One recording: one line, printed by the command line before the run's line.
+    assert main(["estimate", str(b), "--out", str(tmp_path / "b.csv"), "--method", "classic",
+                 "--wheel-radius-mm", "100", "--confidence-rect", "2,2,4,4"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[-2:] == ["segmenter: hue+saturation (1 frame)", printed[-1]]
+    assert printed[-1].startswith("1 frames: ")
 
 
 def test_source_of_rows_and_per_recording_plot(tmp_path) -> None:

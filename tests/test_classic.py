@@ -197,6 +197,8 @@ def test_default_is_the_papers_method(draw_wheel):
     )
     refined = estimate_classic(img, rig(), refine=True)
     assert refined.sinkage_mm != paper.sinkage_mm
+    # The paper's H/S test made the mask, in either mode (the run summary reports it).
+    assert default.segmenter_features == refined.segmenter_features == "hue+saturation"
 
 
 @pytest.mark.parametrize(("y0", "slope"), STRAIGHT_SOILS)
@@ -310,6 +312,7 @@ def test_face_torn_above_the_centre(draw_wheel):
 def test_bad_rect(draw_wheel):
     res = estimate_classic(draw_wheel(ss=1), rig(rect=(310, 60, 24, 18)))
     assert res.status == BAD_RECT and "inside" in res.message
+    assert res.segmenter_features is None  # never segmented
 
 
 def test_no_wheel(draw_wheel):

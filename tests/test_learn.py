@@ -140,7 +140,7 @@ def test_training_a_few_steps_lowers_the_loss() -> None:
     assert L.score(res.segmenter, batches).loss == pytest.approx(res.train_after.loss)
 
 
-def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path) -> None:
+def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path, capsys) -> None:
     rec = recording()
     seg = started("mlp")
     assert isinstance(seg, Segmenter)
@@ -160,6 +160,7 @@ def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path) -> None:
     # The recording's rim (the default) measures as well.
     rows = estimate_batch(list(rec.frames.images), rec.rig, names, segmenter=seg)
     assert np.median(np.abs([r.sinkage_mm for r in rows] - truth) / truth) < 0.10
+    assert {r.segmenter_features for r in rows} == {"learned"}  # no hue/intensity choice
 
     # sinkjax train on a recording on disk, then sinkjax estimate --segmenter with its output.
     from PIL import Image
@@ -178,7 +179,9 @@ def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path) -> None:
     assert main([*args, "--held-out", "0", "--eval-every", "1"]) == 0
     assert L.load_segmenter(model).kind == "mlp"
     out = tmp_path / "results.csv"
+    capsys.readouterr()
     assert main(["estimate", str(folder), "--segmenter", str(model), "--out", str(out)]) == 0
     assert len(out.read_text().splitlines()) == 1 + len(truth)
+    assert f"segmenter: learned ({len(truth)} frames)" in capsys.readouterr().out.splitlines()
     (tmp_path / "bad.seg").write_bytes(b"junk")
     assert main(["estimate", str(folder), "--segmenter", str(tmp_path / "bad.seg")]) == 2

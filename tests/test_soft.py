@@ -1,14 +1,22 @@
-"""The soft estimator: accuracy on rendered truth, jit/vmap consistency, gradients, degeneracies."""
+"""The soft estimator: accuracy on rendered truth, jit/vmap consistency, gradients, degeneracies,
+and which features its segmenter chose, per frame and in the run summary."""
 
 from __future__ import annotations
 
+import colorsys
+import csv
+
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sinkjax import synth
+from sinkjax.app.run import estimate_to_csv
 from sinkjax.geometry import equivalent_line
-from sinkjax.rig import Rig, SegmentationParams
+from sinkjax.result import FEATURES_HUE_SAT
+from sinkjax.rig import Rig, SegmentationParams, save_rig
 from sinkjax.soft.batch import estimate_batch
 from sinkjax.soft.estimator import measure
 from sinkjax.soft.fit import fit
@@ -72,6 +80,8 @@ def test_jit_equals_eager_and_vmap_equals_loop(rendered) -> None:
             np.testing.assert_allclose(
                 getattr(batched, field)[i], getattr(one, field), rtol=1e-6, atol=1e-9
             )
+        # The clean preset's wheel has colour: the H/S test, under vmap as alone.
+        assert int(batched.features[i]) == int(one.features) == FEATURES_HUE_SAT
 
 
 def test_one_compile_serves_every_rig_of_a_size(rendered) -> None:
@@ -232,3 +242,36 @@ def test_bad_rect_rows(rendered) -> None:
     bad = Rig(wheel_radius_mm=140.0, confidence_rect=(W - 5, 10, 20, 20))
     rows = estimate_batch(images, bad, ["a"])
     assert rows[0].status == "bad_rect" and "extends beyond" in rows[0].message
+
+
+def test_run_summary_says_which_features_each_recording_was_segmented_by(rendered, tmp_path):
+    """No setting: a coloured wheel is segmented by hue and saturation, a black one by intensity
+    and texture; every frame says so and the run summary counts it per recording, printed and
+    in ``--summary``. Reference: the saturation of the wheel's paint in the rendered scene."""
+    expected, folders = {}, []
+    for preset in ("clean", "black_wheel"):
+        images, _, rig = rendered(preset, n=2)
+        # The scenes rendered() drew (same generator), without rendering them again.
+        rng = np.random.default_rng(11)
+        scene = synth.recording_scenes(rng, 2, preset=preset, width=W, height=H)[0]
+        saturation = colorsys.rgb_to_hsv(*scene.wheel_rgb)[1]
+        assert saturation < 0.05 or saturation > 0.2, saturation  # a clear case either way
+        folder = tmp_path / preset
+        folder.mkdir()
+        for i, image in enumerate(images):
+            assert cv2.imwrite(str(folder / f"f{i}.png"), image[..., ::-1])
+        save_rig(rig, folder / "rig.toml")
+        folders.append(folder)
+        expected[preset] = "hue+saturation" if saturation > 0.2 else "intensity+texture"
+    assert set(expected.values()) == {"hue+saturation", "intensity+texture"}
+
+    run = estimate_to_csv(folders, tmp_path / "r.csv", summary_csv=tmp_path / "s.csv")
+    names = [name for name, _ in run.recordings]
+    assert run.n_frames == 4
+    assert run.segmenter_lines() == [
+        "segmenter:",
+        *(f"  {name}: {expected[p]} (2 frames)" for name, p in zip(names, expected, strict=True)),
+    ]
+    with open(tmp_path / "s.csv", newline="") as f:
+        cells = [row["segmenter"] for row in csv.DictReader(f)]
+    assert cells == [f"{expected[p]} (2 frames)" for p in expected]

@@ -3,7 +3,8 @@
 A :class:`FrameResult` is an ``eqx.Module`` (a pytree): the measured numbers are its leaves
 (``None`` where not available), the frame's name, :class:`~sinkjax.Status` and message are static.
 Both the soft and the classic estimator build it; the app layer turns it into a CSV row
-(:func:`sinkjax.app.results.csv_row`) and an overlay (:func:`sinkjax.draw_overlay`).
+(:func:`sinkjax.app.results.csv_row`) and an overlay (:func:`sinkjax.draw_overlay`), and counts
+which features separated wheel from soil in each recording for the run summary.
 """
 
 from __future__ import annotations
@@ -14,6 +15,21 @@ import numpy as np
 from .status import Status
 
 Point = tuple[float, float]
+
+# Which features separated wheel from soil in a frame: the codes a soft segmenter reports from
+# inside JAX (:meth:`sinkjax.Segmenter.features`) and their names, which a FrameResult carries
+# and the run summary counts. The classic method is always FEATURES_HUE_SAT (the paper's H/S
+# test); FEATURES_UNKNOWN (no name) is a mask made outside any segmenter (``measure_from_mask``).
+# (Not sinkjax.learn.FEATURE_NAMES: those are the per-pixel inputs of the learned segmenters.)
+FEATURES_UNKNOWN = -1
+FEATURES_HUE_SAT = 0
+FEATURES_INTENSITY = 1
+FEATURES_LEARNED = 2
+FEATURE_CHOICES = {
+    FEATURES_HUE_SAT: "hue+saturation",
+    FEATURES_INTENSITY: "intensity+texture",
+    FEATURES_LEARNED: "learned",
+}
 
 
 class Overlay(eqx.Module):
@@ -29,7 +45,13 @@ class Overlay(eqx.Module):
 
 class FrameResult(eqx.Module):
     """One frame's measurement: sinkage (mm), angles (degrees), their one-sigma, the rim circle
-    (image px), the status and a message. ``None`` = not available (``*_std_*`` for classic)."""
+    (image px), the status and a message. ``None`` = not available (``*_std_*`` for classic).
+
+    ``segmenter_features``: which features separated wheel from soil (a :data:`FEATURE_CHOICES`
+    name, e.g. ``"intensity+texture"``), for every frame that was segmented, whatever its
+    status; None for one that never reached segmentation (unreadable, ``bad_rect``, ...). It
+    is no column of the results CSV (docs/conventions.md §4): the run summary reports it.
+    """
 
     image: str = eqx.field(static=True)
     status: Status = eqx.field(static=True, converter=Status)
@@ -44,6 +66,7 @@ class FrameResult(eqx.Module):
     radius_px: float | None = None
     message: str = eqx.field(static=True, default="")
     overlay: Overlay | None = eqx.field(default=None, repr=False)
+    segmenter_features: str | None = eqx.field(static=True, default=None)
 
 
 def no_contact(
@@ -74,7 +97,19 @@ def no_contact(
     )
 
 
-def failed(image: str, status: Status | str, message: str = "") -> FrameResult:
-    """A result for a frame that produced no measurement (``message``: the status's default)."""
+def failed(
+    image: str,
+    status: Status | str,
+    message: str = "",
+    *,
+    segmenter_features: str | None = None,
+) -> FrameResult:
+    """A result for a frame that produced no measurement (``message``: the status's default;
+    ``segmenter_features``: see :class:`FrameResult`, for a frame segmented in vain)."""
     status = Status(status)
-    return FrameResult(image=image, status=status, message=message or status.message)
+    return FrameResult(
+        image=image,
+        status=status,
+        message=message or status.message,
+        segmenter_features=segmenter_features,
+    )

@@ -57,8 +57,8 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--summary",
         metavar="CSV",
-        help="also write a campaign summary: one row per recording (frames, ok, failures by "
-        "status, median and range of z0, θ1, θ2, median σ)",
+        help="also write a campaign summary: one row per recording (rig, segmenter features, "
+        "frames, ok, failures by status, median and range of z0, θ1, θ2, median σ)",
     )
     p.add_argument(
         "--rim",
@@ -159,6 +159,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e
     if len(summary.recordings) > 1:
         print("\n".join(["rigs:", *summary.rig_lines()]))
+    if lines := summary.segmenter_lines():
+        print("\n".join(lines))
     print(summary.line())
     if summary.summary_csv is not None:
         print(f"summary of {len(summary.recordings)} recording(s) -> {summary.summary_csv}")

@@ -89,7 +89,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         raise UsageError(str(e)) from e
     setup_compile_cache(args)
     report = run_demo(args.out, method=args.method, progress=True)
-    print(report.summary.line())
+    print("\n".join([*report.summary.segmenter_lines(), report.summary.line()]))
     print()
     print(f"errors against the truth ({args.method} method):")
     print(report.accuracy.table())

@@ -140,7 +140,12 @@ def _finite(result: FrameResult) -> FrameResult:
     ]
     if not bad:
         return result
-    return failed(result.image, Status.FIT_FAILED, f"non-finite result ({', '.join(bad)})")
+    return failed(
+        result.image,
+        Status.FIT_FAILED,
+        f"non-finite result ({', '.join(bad)})",
+        segmenter_features=result.segmenter_features,
+    )
 
 
 def _run_group(

@@ -26,7 +26,7 @@ from .results import ResultsWriter
 from .resume import prepare_resume
 from .smoothing import SmoothingOptions, smooth_csv
 from .sources import Inputs, Recording, expand_paths, open_recordings, with_rig
-from .summary import write_summary
+from .summary import describe_features, write_summary
 
 if TYPE_CHECKING:
     from ..soft.segmenter import Segmenter
@@ -36,7 +36,8 @@ log = logging.getLogger("sinkjax")
 
 @dataclass
 class RunSummary:
-    """What a run produced: frames per status, how many had pixels, where the rows went."""
+    """What a run produced: frames per status, how many had pixels, where the rows went, and
+    per recording its rig and which features its segmenter chose on how many frames."""
 
     out: Path | None
     counts: Counter[str] = field(default_factory=Counter)
@@ -55,6 +56,8 @@ class RunSummary:
         return sum(self.counts.values())
 
     recordings: list[tuple[str, str]] = field(default_factory=list)  # (recording, its rig)
+    # Per recording: frames of this run per segmenter features (FrameResult.segmenter_features).
+    features: dict[str, Counter[str]] = field(default_factory=dict)
 
     @property
     def only_bad_rect(self) -> bool:
@@ -64,6 +67,23 @@ class RunSummary:
     def rig_lines(self) -> list[str]:
         """One line per recording: which rig it was measured with."""
         return [f"  {name}: rig {source}" for name, source in self.recordings]
+
+    def segmenter_lines(self) -> list[str]:
+        """Which features separated wheel from soil, on how many of this run's frames: one
+        line for one recording (``segmenter: hue+saturation (12 frames)``), else a heading and
+        a line per recording (``  runB: intensity+texture (10), hue+saturation (2)``); no line
+        when no frame was segmented (none could be read, or all were resumed)."""
+        if not any(self.features.values()):
+            return []
+        heading = "segmenter" + (" (frames measured in this run)" if self.n_resumed else "")
+        if len(self.recordings) == 1:
+            name = self.recordings[0][0]
+            return [f"{heading}: {describe_features(self.features.get(name, {}))}"]
+        lines = [f"{heading}:"]
+        for name, _ in self.recordings:
+            text = describe_features(self.features.get(name, {}))
+            lines.append(f"  {name}: {text or 'no frame segmented'}")
+        return lines
 
     def line(self) -> str:
         """One line: ``12 frames: 10 ok, 1 no_contact; failed: 1 unreadable -> results.csv``."""
@@ -121,7 +141,8 @@ def estimate_to_csv(
     :class:`FrameSelection`). ``resume``: keep the rows already in ``out_csv`` and append only
     the frames it lacks (by ``image`` name). ``smoothing``: when the run completes, add the
     smoothed columns (:mod:`sinkjax.app.smoothing`). ``summary_csv``: when the run completes,
-    write the campaign summary there (:mod:`sinkjax.app.summary`). ``parallel``: measure on a
+    write the campaign summary there (:mod:`sinkjax.app.summary`; its ``segmenter`` column, as
+    :meth:`RunSummary.segmenter_lines`, counts this run's frames). ``parallel``: measure on a
     Dask cluster (:mod:`sinkjax.app.parallel`; the same rows, written here in the same order;
     overlays are written by the workers, ``overlay_video`` needs a serial run). ``progress``:
     a progress bar (frames/s, ETA) on stderr when it is a terminal. Rows already written stay
@@ -210,6 +231,8 @@ def estimate_to_csv(
             for rec, result, was_read, frame in rows:
                 writer.write(result)
                 summary.counts[result.status] += 1
+                if result.segmenter_features:
+                    summary.features.setdefault(rec.name, Counter())[result.segmenter_features] += 1
                 summary.n_read += was_read
                 if frame is not None:
                     _write_overlays(rec, frame, result, overlays, video)
@@ -225,7 +248,7 @@ def estimate_to_csv(
         smooth_csv(out, out, smoothing)
         summary.smoothed = True
     if summary_csv is not None:
-        summary.summary_csv = write_summary(out, inputs, summary_csv)
+        summary.summary_csv = write_summary(out, inputs, summary_csv, summary.features)
     return summary
 
 

@@ -32,6 +32,7 @@ and an outline dipping inside the rim above O fails loudly instead of reading as
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -44,7 +45,7 @@ from ..geometry import (
     rim_radius_range_px,
     travel_sign,
 )
-from ..result import FrameResult, Overlay, failed, no_contact
+from ..result import FEATURE_CHOICES, FEATURES_HUE_SAT, FrameResult, Overlay, failed, no_contact
 from ..rig import MIN_WHEEL_CHROMA, Rig, rim_hint_range_px
 from ..status import Status
 from .outline import (
@@ -149,8 +150,18 @@ def estimate_classic(
     Never raises for bad image content. The classic method has no uncertainty: the ``*_std_*``
     fields stay None. A result whose own outputs are implausible (:func:`implausibility`; with
     ``recording_radius_px``, the recording's rim radius, also a rim far from it) keeps its
-    numbers under status ``implausible`` with the reason.
+    numbers under status ``implausible`` with the reason. Every frame that reaches step 2 says
+    it was segmented by ``"hue+saturation"`` (``segmenter_features``), whatever its status.
     """
+    result = _estimate(image, rig, name, refine, recording_radius_px)
+    if result.status in (Status.BAD_IMAGE, Status.BAD_RECT):
+        return result
+    return dataclasses.replace(result, segmenter_features=FEATURE_CHOICES[FEATURES_HUE_SAT])
+
+
+def _estimate(
+    image: np.ndarray, rig: Rig, name: str, refine: bool, recording_radius_px: float | None
+) -> FrameResult:
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         return failed(

@@ -43,9 +43,13 @@ def _float(image_u8: Array) -> Array:
 def _prepare_u8(
     image_u8: Array, segmenter: Segmenter, rig: RigArrays, rim: RecordingRim
 ) -> Prepared:
-    # The mask stage: the segmenter is an argument, its parameters traced like the rig's.
+    # The mask stage: the segmenter is an argument, its parameters traced like the rig's. Its
+    # choice of features is computed here too (the run summary reports it; the default
+    # segmenter's choice shares its colour statistics with the mask under jit).
     image = _float(image_u8)
-    return prepare(image, segmenter(image, rig.rect_px), rim, None, rig.rim_range_px)
+    mask = segmenter(image, rig.rect_px)
+    features = segmenter.features(image, rig.rect_px)
+    return prepare(image, mask, rim, None, rig.rim_range_px, features)
 
 
 def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstimate:

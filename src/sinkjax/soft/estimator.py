@@ -15,6 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import travel_sign
+from ..result import FEATURES_UNKNOWN
 from ..rig import Rig, SegmentationParams, rim_hint_range_px
 from ..status import Status
 from .adaptive import default_segmenter
@@ -41,7 +42,9 @@ class SoftEstimate(eqx.Module):
     :class:`sinkjax.Status` ``code``; the boundary arrays are the outline points and their
     boundary weights (for overlays). For no contact the measurements are 0 and the sigmas say how
     much sinkage (and angle) could hide below what the image shows (docs/conventions.md §1,
-    :func:`hidden_contact_std`).
+    :func:`hidden_contact_std`). ``features`` is which features the segmenter separated wheel
+    from soil with (a ``FEATURES_*`` code of :data:`sinkjax.result.FEATURE_CHOICES`;
+    ``FEATURES_UNKNOWN`` for a mask given to :func:`measure_from_mask`).
     """
 
     sinkage_mm: Float[Array, ""]
@@ -63,17 +66,20 @@ class SoftEstimate(eqx.Module):
     rim_code: Int[Array, ""]  # soft.rim: which rim the frame was measured with
     own_rim_px: Float[Array, " 3"]  # the frame's own rim (cx, cy, r) where it was searched
     rim_support: Float[Array, ""]  # fraction of the measured rim seen in this frame
+    features: Int[Array, ""]  # the segmenter's choice of features (Segmenter.features)
 
 
 class Prepared(eqx.Module):
     """A frame up to its rim choice (the first half of the method): the soft mask, its outline,
     and the rim to measure with (with the frame's own rim, where it was searched). Kept between
     the halves so that the first frames of a recording, measured once with their own rims to
-    find the recording's, are not segmented twice."""
+    find the recording's, are not segmented twice. ``features``: which features made the mask
+    (a ``FEATURES_*`` code), passed on to the :class:`SoftEstimate`."""
 
     mask: Float[Array, "H W"]
     outline: Outline
     choice: RimChoice
+    features: Int[Array, ""]
 
 
 def prepare(
@@ -82,8 +88,11 @@ def prepare(
     rim: RecordingRim | None = None,
     settings: SoftSettings | None = None,
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
+    features: ArrayLike = FEATURES_UNKNOWN,
 ) -> Prepared:
-    """Outline of the mask, and the rim circle to measure with (``soft.rim.choose_circle``)."""
+    """Outline of the mask, and the rim circle to measure with (``soft.rim.choose_circle``).
+    ``features``: the code of the features that made ``mask`` (``Segmenter.features``; may be
+    traced), kept for the estimate; by default unknown."""
     if image.ndim != 3 or image.shape[-1] != 3 or mask.shape != image.shape[:2]:
         raise ValueError(
             f"need image (H, W, 3) and mask (H, W) of the same H, W; got image {image.shape} "
@@ -98,7 +107,9 @@ def prepare(
         return jax.lax.stop_gradient(hough_rim(outline, height, width, s, rim_range_px))
 
     choice = choose_circle(outline, RecordingRim.per_frame() if rim is None else rim, own_rim, s)
-    return Prepared(mask=mask, outline=outline, choice=choice)
+    return Prepared(
+        mask=mask, outline=outline, choice=choice, features=jnp.asarray(features, jnp.int32)
+    )
 
 
 def rechoose(
@@ -165,6 +176,7 @@ def finish(
         rim_code=choice.code,
         own_rim_px=jnp.stack([choice.own.cx_px, choice.own.cy_px, choice.own.r_px]),
         rim_support=choice.circle.support,
+        features=prepared.features,
     )
 
 
@@ -221,10 +233,12 @@ def measure(
     as a strong prior; None: the frame's own rim. ``segmenter`` (a
     :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the default with the
     thresholds ``seg`` (:func:`~sinkjax.soft.adaptive.default_segmenter`: the paper's H/S test
-    on a coloured wheel, intensity/chroma/texture on a black one).
+    on a coloured wheel, intensity/chroma/texture on a black one); which features it chose is
+    the estimate's ``features``.
     Never raises for image content: problems are reported in ``status``.
     """
-    mask = (default_segmenter(seg) if segmenter is None else segmenter)(image, rect)
+    segmenter = default_segmenter(seg) if segmenter is None else segmenter
+    mask = segmenter(image, rect)
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
     return measure_from_mask(
@@ -236,6 +250,7 @@ def measure(
         settings=settings,
         rim_range_px=rim_range_px,
         rim=rim,
+        features=segmenter.features(image, rect),
     )
 
 
@@ -249,15 +264,17 @@ def measure_from_mask(
     settings: SoftSettings | None = None,
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
     rim: RecordingRim | None = None,
+    features: ArrayLike = FEATURES_UNKNOWN,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
     ``measure`` is ``measure_from_mask(image, segmenter(image, rect))``; a segmenter outside
     JAX (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
-    outline is located on its colours. Keyword arguments as for :func:`measure`.
+    outline is located on its colours. Keyword arguments as for :func:`measure`; ``features``
+    (the estimate's ``features``): the ``FEATURES_*`` code of what made the mask, if known.
     Raises ValueError if the shapes disagree.
     """
-    prepared = prepare(image, mask, rim, settings, rim_range_px)
+    prepared = prepare(image, mask, rim, settings, rim_range_px, features)
     return finish(
         image,
         prepared,

@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 
 from ..geometry import from_wheel_frame, travel_sign
-from ..result import FrameResult, Overlay, failed, no_contact
+from ..result import FEATURE_CHOICES, FrameResult, Overlay, failed, no_contact
 from ..rig import Rig
 from ..status import Status
 from .checks import message as check_message
@@ -39,8 +39,14 @@ def _rim_message(out: SoftEstimate, i: int) -> str:
 
 def frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str = "") -> FrameResult:
     """Frame ``i`` of a batched :class:`SoftEstimate` as the common :class:`FrameResult`
-    (degrees, image px, the overlay geometry). ``searched``: the rim radii searched, for the
-    message of a frame without a rim."""
+    (degrees, image px, the overlay geometry, which features the segmenter chose; every
+    status). ``searched``: the rim radii searched, for the message of a frame without a rim."""
+    result = _frame_result(out, i, name, rig, searched)
+    features = FEATURE_CHOICES.get(int(out.features[i]))
+    return dataclasses.replace(result, segmenter_features=features)
+
+
+def _frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str) -> FrameResult:
     p = out.params[i].astype(float)
     status = Status.from_code(int(out.status[i]))
     cx, cy, r = float(p[0]), float(p[1]), float(p[2])

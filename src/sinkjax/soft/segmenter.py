@@ -16,19 +16,18 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from ..result import (
+    FEATURE_CHOICES as FEATURE_CHOICES,
+    FEATURES_HUE_SAT as FEATURES_HUE_SAT,
+    FEATURES_INTENSITY as FEATURES_INTENSITY,
+    FEATURES_LEARNED as FEATURES_LEARNED,
+    FEATURES_UNKNOWN as FEATURES_UNKNOWN,
+)
 from ..rig import SegmentationParams, rect_problem
 from .segmentation import Rect, wheel_mask
 
-# Codes for which features a segmenter separated wheel from soil with, per frame (the run
-# summary shows them). A segmenter that does not choose reports FEATURES_LEARNED.
-FEATURES_HUE_SAT = 0
-FEATURES_INTENSITY = 1
-FEATURES_LEARNED = 2
-FEATURE_NAMES = {
-    FEATURES_HUE_SAT: "hue+saturation",
-    FEATURES_INTENSITY: "intensity+texture",
-    FEATURES_LEARNED: "learned",
-}
+# The FEATURES_* codes that Segmenter.features reports, and FEATURE_CHOICES their names, live in
+# sinkjax.result (the classic method and the run summary use them too); re-exported here.
 
 
 def rect_weight(
@@ -62,7 +61,10 @@ class Segmenter(eqx.Module):
         raise NotImplementedError
 
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
-        """Which features separate wheel from soil in this frame (a ``FEATURES_*`` code).
+        """Which features separate wheel from soil in this frame (a ``FEATURES_*`` code of
+        :data:`FEATURE_CHOICES`): jit-able and vmap-able like the mask. The soft method reports
+        it per frame (``SoftEstimate.features``, then ``FrameResult.segmenter_features``) and
+        the run summary counts it per recording.
 
         A fixed-form segmenter reports its one choice; learned ones report FEATURES_LEARNED.
         """
