@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import math
 import re
 import sys
@@ -39,7 +40,7 @@ from scipy import optimize, special, stats
 
 import sinkjax as sj
 from sinkjax import metrics as sm
-from sinkjax.soft.uncertainty import MIN_DOF, QUANTITIES, UncertaintyModel
+from sinkjax.soft.uncertainty import ADJUST_LEVELS, MIN_DOF, NO_ADJUST, QUANTITIES, UncertaintyModel
 
 RESULTS = Path(__file__).parent / "results"
 NAME = "uncertainty_calibration"
@@ -246,7 +247,21 @@ def model_from(params: dict[str, dict]) -> UncertaintyModel:
         *(round(p[q]["scale"], 3) for q in QUANTITIES),
         *(round(p[q]["floor"], 3) for q in QUANTITIES),
         *(round(p[q]["dof"], 2) if p[q]["dof"] < 100 else math.inf for q in QUANTITIES),
+        level_adjust=NO_ADJUST,
     )
+
+
+def adjusted(model: UncertaintyModel, ds: dict[str, Data]) -> UncertaintyModel:
+    """``model`` with its multipliers corrected to the calibration frames' own quantiles: at
+    each of ADJUST_LEVELS, the empirical quantile of |error| / reported sigma over the model's
+    multiplier (so that on these frames every such interval holds exactly its share)."""
+    levels = np.asarray(ADJUST_LEVELS)
+    table = []
+    for q in QUANTITIES:
+        z = np.abs(ds[q].err) / reported_sigma(ds[q], model, q)
+        base = np.asarray(model.multiplier(levels, q))
+        table.append(tuple(round(float(v), 3) for v in np.quantile(z, levels) / base))
+    return dataclasses.replace(model, level_adjust=tuple(table))
 
 
 def reported_sigma(d: Data, model: UncertaintyModel, q: str) -> np.ndarray:
@@ -305,7 +320,26 @@ def excess_kurtosis(z: np.ndarray) -> float:
 def update_source(model: UncertaintyModel) -> None:
     """Rewrite the defaults of UncertaintyModel's fields in src/sinkjax/soft/uncertainty.py."""
     text = SOURCE.read_text(encoding="utf-8")
+    # The table as ruff formats it, one row per quantity.
+    rows = "".join(
+        "            (" + ", ".join(repr(float(v)) for v in row) + "),\n"
+        for row in model.level_adjust
+    )
+    block = (
+        "    level_adjust: tuple[tuple[float, ...], ...] = eqx.field(\n"
+        f"        default=(\n{rows}        ),\n        static=True,\n    )\n"
+    )
+    text, n = re.subn(
+        r"^    level_adjust: .*? = eqx\.field\(\n.*?static=True,\n    \)\n",
+        lambda _: block,
+        text,
+        flags=re.M | re.S,
+    )
+    if n != 1:
+        raise RuntimeError(f"{SOURCE}: no default for level_adjust")
     for name in UncertaintyModel.__dataclass_fields__:
+        if name == "level_adjust":
+            continue
         v = float(getattr(model, name))
         cell = "math.inf" if math.isinf(v) else repr(v)
         text, n = re.subn(rf"^(    {name}: float = ).*$", rf"\g<1>{cell}", text, flags=re.M)
@@ -322,7 +356,7 @@ def _figure(
     path: Path, ev: dict[str, Data], models: dict[str, UncertaintyModel], chosen: str
 ) -> None:
     fig, axes = report.figure(2, 3, (15.0, 9.0))
-    styles = dict(zip(models, (":", "--", "-.", (0, (1, 1)), "-"), strict=True))
+    styles = dict(zip(models, (":", "--", "-.", (0, (1, 1)), (0, (5, 1, 1, 1)), "-"), strict=True))
     for j, q in enumerate(QUANTITIES):
         ax = axes[0, j]
         p = np.asarray(CURVE)
@@ -497,7 +531,8 @@ def main(argv: list[str] | None = None) -> int:
     models = {"current defaults": UncertaintyModel()}
     for key, name in FITS.items():
         models[name] = model_from({q: f[key] for q, f in fits.items()})
-    chosen = FITS[args.dof]
+    chosen = f"{FITS[args.dof]}, levels adjusted"
+    models[chosen] = adjusted(models[FITS[args.dof]], tr)
     cov = {q: {n: coverage(ev[q], m, q, LEVELS) for n, m in models.items()} for q in QUANTITIES}
     for q in QUANTITIES:
         cov[q][f"{chosen}, Gaussian multipliers"] = coverage_gaussian_k(

@@ -13,6 +13,8 @@ from scipy import stats
 
 import sinkjax as sj
 from sinkjax.soft.uncertainty import (
+    ADJUST_LEVELS,
+    NO_ADJUST,
     QUANTITIES,
     UncertaintyModel,
     central_multiplier,
@@ -39,7 +41,9 @@ def test_student_t_multiplier_matches_scipy(dof: float) -> None:
 
 
 def test_model_multiplier_and_interval_per_quantity() -> None:
-    m = UncertaintyModel(dof_sinkage=3.0, dof_theta1=math.inf, dof_theta2=12.0)
+    m = UncertaintyModel(
+        dof_sinkage=3.0, dof_theta1=math.inf, dof_theta2=12.0, level_adjust=NO_ADJUST
+    )
     # In units of the reported sigma, the t's standard deviation (scipy's t.std).
     ref = [
         stats.t.ppf(0.975, 3.0) / stats.t.std(3.0),
@@ -79,11 +83,28 @@ def test_each_quantity_has_its_own_scale_and_floor() -> None:
     assert np.all(np.asarray(d.dofs()) > 2)  # a finite variance
 
 
+def test_level_adjustment_scales_the_t_multiplier_by_the_interpolated_factor() -> None:
+    # Factors at ADJUST_LEVELS (numpy's interp between them, held beyond) times scipy's t
+    # quantile over the t's standard deviation.
+    table = ((0.8, 0.9, 1.0, 1.1, 1.2, 1.3), (1.0,) * 6, (1.3, 1.2, 1.1, 1.0, 0.9, 0.8))
+    m = UncertaintyModel(dof_sinkage=4.0, dof_theta1=6.0, dof_theta2=3.0, level_adjust=table)
+    levels = np.asarray([0.3, 0.5, 0.6, 0.85, 0.95, 0.97, 0.995])
+    for i, (q, dof) in enumerate(zip(QUANTITIES, (4.0, 6.0, 3.0), strict=True)):
+        t = stats.t.ppf(0.5 + levels / 2, dof) / stats.t.std(dof)
+        ref = t * np.interp(levels, ADJUST_LEVELS, table[i])
+        np.testing.assert_allclose(np.asarray(m.multiplier(levels, q)), ref, rtol=1e-4)
+        both = np.asarray(m.multiplier(0.6))
+        assert both[i] == pytest.approx(float(m.multiplier(0.6, q)), rel=1e-12)
+    # The shipped model is adjusted by less than half either way, and raw() not at all.
+    assert np.all(np.abs(np.log(np.asarray(UncertaintyModel().level_adjust))) < np.log(1.5))
+    assert UncertaintyModel.raw().level_adjust == NO_ADJUST
+
+
 @pytest.mark.parametrize("dof", [3.2, 4.0, 6.0, 20.0])
 def test_reported_sigma_keeps_1_96_close_to_95_percent(dof: float) -> None:
     # The CSV's sigma is the t's standard deviation, so ±1.96 sigma holds about 95 % of a
     # heavy-tailed error (scipy's t cdf), and the model's own 95 % multiplier is exact.
-    m = UncertaintyModel(dof_sinkage=dof, dof_theta1=dof, dof_theta2=dof)
+    m = UncertaintyModel(dof_sinkage=dof, dof_theta1=dof, dof_theta2=dof, level_adjust=NO_ADJUST)
     sd = stats.t.std(dof)
     assert 100 * (2 * stats.t.cdf(1.96 * sd, dof) - 1) == pytest.approx(95.0, abs=1.0)
     k = float(m.multiplier(0.95, "theta1"))
