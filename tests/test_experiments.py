@@ -148,15 +148,19 @@ def test_every_experiment_scene_has_one_rig(tmp_path: Path) -> None:
 def test_coverage_statistics() -> None:
     u = _module("exp_uncertainty")
     # The interval half-width in reported sigmas: the Student-t quantile over its standard
-    # deviation for the shipped model's degrees of freedom (scipy as the reference).
+    # deviation for the shipped model's degrees of freedom (scipy as the reference), times the
+    # model's level correction interpolated at p (numpy's interp).
     from scipy import stats
 
     from sinkjax import UncertaintyModel
+    from sinkjax.soft.uncertainty import ADJUST_LEVELS
 
-    dofs = [float(d) for d in UncertaintyModel().dofs()]
-    for q, dof in zip(("sinkage", "theta1", "theta2"), dofs, strict=True):
+    model = UncertaintyModel()
+    dofs = [float(d) for d in model.dofs()]
+    for i, (q, dof) in enumerate(zip(("sinkage", "theta1", "theta2"), dofs, strict=True)):
         for p in (0.5, 0.8, 0.95):
-            want = stats.t.ppf(0.5 + p / 2, dof) / stats.t.std(dof)
+            adjust = np.interp(p, ADJUST_LEVELS, model.level_adjust[i])
+            want = stats.t.ppf(0.5 + p / 2, dof) / stats.t.std(dof) * adjust
             assert u.z_for(p, q) == pytest.approx(want, rel=1e-4)
     lo, hi = u.wilson(45, 50)
     assert lo < 0.9 < hi and 0 <= lo and hi <= 1
