@@ -418,7 +418,11 @@ def _md(data: dict) -> str:
         "sigma is sqrt((a σ_raw)² + f²) (σ_raw: the delta method; f in px for z0, deg for the "
         "angles), fitted by maximum likelihood with error / sigma Gaussian or Student-t; ν ≥ 100 "
         f"is stored as Gaussian. Coverage: {sm.RULE_COVERAGE}; the interval at level p is value "
-        "± multiplier(p) σ (`UncertaintyModel.multiplier`).",
+        "± multiplier(p) σ (`UncertaintyModel.multiplier`). The model written as the defaults "
+        "is the chosen fit with its multipliers corrected, per quantity, to the calibration "
+        "frames' own quantiles of |error| / σ at 50/68/80/90/95/99 % (`level_adjust`; "
+        "interpolated between them): the errors are more peaked than any t that also holds "
+        "their tails.",
         "## Fit (calibration seeds)",
         report.md_table(
             ["quantity", "fit", "frames", "scale a", "floor f", "ν", "-log likelihood"],

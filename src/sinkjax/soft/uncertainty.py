@@ -125,7 +125,7 @@ class UncertaintyModel(eqx.Module):
 
     @staticmethod
     def raw() -> UncertaintyModel:
-        """The delta-method sigma as it is: scale 1, no floor, Gaussian."""
+        """The delta-method sigma as it is: scale 1, no floor, Gaussian, no level correction."""
         return UncertaintyModel(
             1.0, 1.0, 1.0, 0.0, 0.0, 0.0, math.inf, math.inf, math.inf, level_adjust=NO_ADJUST
         )
