@@ -148,7 +148,8 @@ def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path, capsys) ->
     # Each frame's own rim: comparable with measure_from_mask on the frame alone.
     rows = estimate_batch(list(rec.frames.images), rec.rig, names, segmenter=seg, rim="frame")
     image = jnp.asarray(rec.frames.images[0], jnp.float64) / 255.0
-    direct = measure_from_mask(
+    # Jitted: run op by op, the whole method would take half a minute to dispatch.
+    direct = jax.jit(measure_from_mask, static_argnames=("travel", "wheel_radius_mm"))(
         image,
         seg(image, rec.rig.confidence_rect),
         travel=rec.rig.travel,

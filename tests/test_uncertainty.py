@@ -34,6 +34,19 @@ def test_gaussian_multiplier_at_95_is_1_96() -> None:
         assert float(central_multiplier(p)) == pytest.approx(stats.norm.ppf(0.5 + p / 2), rel=1e-5)
 
 
+def test_multiplier_outside_jit_compiles_once_per_shape() -> None:
+    # An eager bisection loop would compile anew for every level (a 50-level curve: 40 s).
+    from sinkjax.soft.uncertainty import _beta_root
+
+    model = UncertaintyModel()
+    float(model.multiplier(0.5, "sinkage"))
+    before = _beta_root._cache_size()
+    for p in (0.37, 0.61, 0.83, 0.97):
+        k = float(model.multiplier(p, "theta1"))
+        assert math.isfinite(k) and k > 0
+    assert _beta_root._cache_size() == before
+
+
 @pytest.mark.parametrize("dof", [1.0, 2.5, 4.0, 7.3, 30.0, 250.0])
 def test_student_t_multiplier_matches_scipy(dof: float) -> None:
     got = np.asarray(central_multiplier(np.asarray(LEVELS), dof))
