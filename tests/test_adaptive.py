@@ -10,7 +10,7 @@ import pytest
 
 from sinkjax import Status, estimate_classic, synth
 from sinkjax.rig import SegmentationParams
-from sinkjax.soft.adaptive import AdaptiveSegmenter, texture
+from sinkjax.soft.adaptive import AdaptiveSegmenter, log_histogram, texture, valley
 from sinkjax.soft.segmentation import wheel_mask
 from sinkjax.soft.segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY
 from sinkjax.synth.layers import WHEEL_LAYERS, coverage
@@ -46,23 +46,72 @@ def test_coloured_wheel_gets_the_paper_mask_exactly() -> None:
     assert int(AdaptiveSegmenter(seg).features(x, rect)) == FEATURES_HUE_SAT
 
 
-def test_texture_matches_numpy_windows() -> None:
+def test_texture_matches_numpy_plane_fits() -> None:
+    # A tilted plane plus noise: each window's least-squares plane (numpy lstsq) leaves the
+    # noise; the smallest residual std over the pixel's four corner windows is the texture.
     rng = np.random.default_rng(0)
-    a = rng.uniform(size=(12, 14))
+    yy, xx = np.mgrid[0:12, 0:14]
+    a = 0.3 + 0.05 * xx - 0.02 * yy + 0.01 * rng.normal(size=(12, 14))
     got = np.asarray(texture(jnp.asarray(a), 3))
     pad = np.pad(a, 2, mode="edge")
+    dy, dx = np.mgrid[0:3, 0:3]
+    design = np.column_stack([np.ones(9), dx.ravel(), dy.ravel()])
     for i, j in [(0, 0), (5, 7), (11, 13), (3, 12)]:
-        stds = [
-            pad[2 + i + di : 2 + i + di + 3, 2 + j + dj : 2 + j + dj + 3].std()
-            for di in (-2, 0)
-            for dj in (-2, 0)
-        ]
+        stds = []
+        for di in (-2, 0):
+            for dj in (-2, 0):
+                win = pad[2 + i + di : 2 + i + di + 3, 2 + j + dj : 2 + j + dj + 3].ravel()
+                coef, *_ = np.linalg.lstsq(design, win, rcond=None)
+                stds.append((win - design @ coef).std())
         assert got[i, j] == pytest.approx(min(stds), abs=1e-9)
+    # A pure gradient has no texture; the plain std of a 3 x 3 window would be 0.04.
+    ramp = jnp.asarray(0.05 * xx - 0.02 * yy, jnp.float64)
+    assert float(jnp.max(texture(ramp, 3)[2:-2, 2:-2])) < 1e-6
 
 
-@pytest.mark.parametrize("leaf", ["p_a_int", "p_chroma", "t_int"])
-def test_gradient_of_mask_statistic_matches_finite_differences(leaf: str) -> None:
-    _, img, rig = _scene("black_wheel")
+def test_valley_threshold_lies_between_the_populations() -> None:
+    # Wheel around 0.09, a cast shadow around 0.18, soil around 0.3 (log-normal spreads): the
+    # threshold searched up from the wheel's 0.1 to 1.6 x 0.1 + 0.03 must separate wheel from
+    # shadow, at the emptiest bin of numpy's own histogram of the same values.
+    rng = np.random.default_rng(1)
+    img = np.concatenate(
+        [
+            np.exp(rng.normal(np.log(0.09), 0.12, 40_000)),
+            np.exp(rng.normal(np.log(0.18), 0.06, 8_000)),
+            np.exp(rng.normal(np.log(0.30), 0.10, 30_000)),
+        ]
+    ).reshape(-1, 120)
+    img = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)  # the histogram takes every 2nd px
+    hist, centres = log_histogram(jnp.asarray(img))
+    lo, hi = np.log(0.1), np.log(1.6 * 0.1 + 0.03)
+    t = float(valley(hist, centres, jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(False)))
+    log_i = np.log(np.clip(img[::2, ::2], 1 / 255, 1))
+    counts, edges = np.histogram(log_i, 64, (np.log(1 / 255), 0))
+    smooth = np.convolve(counts, np.array([1, 2, 3, 2, 1]) / 9, mode="same")
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    inside = (mid >= lo) & (mid <= hi)
+    assert np.log(t) == pytest.approx(mid[inside][np.argmin(smooth[inside])], abs=1e-6)
+    assert 0.12 < t < 0.16
+    # A metal wheel (0.8) over a background at 0.2: the valley lies between, below 0.6 x 0.8.
+    bright = np.concatenate(
+        [np.exp(rng.normal(np.log(0.2), 0.1, 40_000)), np.exp(rng.normal(np.log(0.8), 0.1, 20_000))]
+    ).reshape(-1, 100)
+    hist, centres = log_histogram(jnp.asarray(bright))
+    t = float(valley(hist, centres, jnp.log(0.08), jnp.log(0.48), jnp.asarray(True)))
+    assert 0.28 < t < 0.48
+
+
+@pytest.mark.parametrize(
+    ("preset", "leaf"),
+    [
+        ("black_wheel", "p_a_int"),
+        ("black_wheel", "p_chroma"),
+        ("black_wheel", "t_int"),
+        ("metal_wheel", "p_valley"),
+    ],
+)
+def test_gradient_of_mask_statistic_matches_finite_differences(preset: str, leaf: str) -> None:
+    _, img, rig = _scene(preset)
     x = jnp.asarray(img[::2, ::2], jnp.float64) / 255.0
     rect = tuple(v // 2 for v in rig.confidence_rect)
 

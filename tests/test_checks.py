@@ -14,6 +14,7 @@ from sinkjax.classic.estimator import implausibility, recording_radius_px
 from sinkjax.result import FrameResult
 from sinkjax.soft.checks import TESTS, message
 from sinkjax.soft.estimator import measure_from_mask
+from sinkjax.soft.rim import RecordingRim
 from sinkjax.soft.segmentation import wheel_mask
 from sinkjax.status import Status
 
@@ -39,6 +40,33 @@ def test_soft_checks_pass_a_clean_frame_and_flag_a_mask_that_lost_part_of_the_ri
     assert Status.from_code(int(bad.status)) in (Status.IMPLAUSIBLE, Status.NO_WHEEL)
     if Status.from_code(int(bad.status)) == Status.IMPLAUSIBLE:
         assert int(bad.check) >= 1 and message(int(bad.check)).startswith(TESTS[int(bad.check) - 1])
+
+
+def test_a_cast_shadow_taken_for_wheel_is_flagged_not_read_as_no_contact() -> None:
+    # The rendered wheel's own mask, plus a half-ellipse below the rim that the mask calls
+    # wheel (a dark cast shadow on the soil under a black wheel): the soil no longer shows
+    # inside the rim, so without the outer ring the frame would read "no contact, 0 mm".
+    rng = np.random.default_rng(4)
+    scenes = S.recording_scenes(rng, 1, preset="clean", width=200, height=150)
+    sc = scenes[0]
+    img, truth = S.render(sc, seed=1)
+    assert truth.sinkage_px > 3.0
+    rig = S.rig_for(sc)
+    image = jnp.asarray(img, jnp.float64) / 255.0
+    mask = wheel_mask(image, rig.segmentation, rig.confidence_rect)
+    good = _measure(image, mask, wheel_radius_mm=rig.wheel_radius_mm)
+    assert Status.from_code(int(good.status)) == Status.OK
+    yy, xx = np.mgrid[0:150, 0:200]
+    r, cx, cy = sc.radius_px, sc.centre_x_px, sc.centre_y_px
+    shadow = ((xx - cx) / (1.3 * r)) ** 2 + ((yy - cy - 0.3 * r) / (1.2 * r)) ** 2 < 1.0
+    shadow &= yy > cy
+    # Measured as ``estimate`` measures a recording: with its rim held (soft.rim).
+    rim = RecordingRim.fixed(cx, cy, r, 0.3)
+    shadowed = jnp.where(jnp.asarray(shadow), 1.0, mask)
+    bad = _measure(image, shadowed, wheel_radius_mm=140.0, rim=rim)
+    assert Status.from_code(int(bad.status)) == Status.IMPLAUSIBLE
+    assert int(bad.check) == len(TESTS)
+    assert message(int(bad.check)).startswith("the wheel mask reaches into the soil")
 
 
 def test_classic_implausibility() -> None:
@@ -106,7 +134,7 @@ def test_line_shift_std_moves_z0_by_the_shift() -> None:
     from sinkjax.soft.checks import Plausibility, line_shift_std
 
     z = jnp.zeros(())
-    check = Plausibility(z, z, z, z, z, z, z + 1.0, jnp.asarray(2.5), jnp.asarray(0))
+    check = Plausibility(z, z, z, z, z, z, z, z + 1.0, jnp.asarray(2.5), jnp.asarray(0))
     p = jnp.asarray([0.0, 0.0, 100.0, 0.0, 40.0, 0.0, 40.0, 0.0, 40.0])
     std = line_shift_std(p, check, 140.0)
     assert float(std[0]) == pytest.approx(2.5 * 140.0 / 100.0, rel=1e-6)

@@ -9,13 +9,23 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
 - at least ``min_wheel_chroma``: the paper's test, exactly
   :func:`~sinkjax.soft.segmentation.wheel_mask` (the same numbers as before);
 - below: a soft distance in a small feature space, each feature scaled by the rectangle's own
-  statistics (the paper's P_a/P_d generalised). Intensity: the wheel is the side of a threshold
-  between the rectangle's mean I_w and the frame's mean I_ref (darker for a black wheel,
-  brighter for a metal one), at ``p_int`` of the way from I_w to I_ref. Chroma: the opponent
-  colour (R - (G + B)/2, sqrt(3)/2 (G - B)) stays within ``p_chroma`` times a floor of the
-  rectangle's mean (brown soil, however dark, has chroma). Texture: the local intensity spread
-  (the smallest of four one-sided windows, so that an edge does not count as texture on either
-  side) stays under ``p_tex`` times the rectangle's (sand has grain, rubber and metal do not).
+  statistics (the paper's P_a/P_d generalised).
+
+  - Intensity: the wheel is the side of a threshold on which the rectangle's mean I_w lies:
+    darker than the frame for a black wheel, brighter for a metal one. For a black wheel the
+    threshold is the paper-style ``p_a_int * I_w + int_floor`` (its shaded side is darker
+    still). A metal wheel under one-sided light spans a factor of three in brightness, its
+    shaded side near the background's, so no fixed fraction of I_w separates them; its
+    threshold sits in the valley of the frame's log-intensity histogram between the wheel's
+    population and the background's nearest below it, where the fewest pixels are (searched
+    between ``0.1 I_w`` and ``p_d_int * I_w``).
+  - Chroma: the opponent colour (R - (G + B)/2, sqrt(3)/2 (G - B)) stays within ``p_chroma``
+    times a floor of the rectangle's spread of it (brown soil, however dark, has chroma). A
+    clipped pixel (a channel at the sensor's top) has lost its chroma and is not judged by it.
+  - Texture: the local intensity spread after removing the window's own plane (shading is a
+    gradient, not texture), the smallest of four one-sided windows (so that an edge does not
+    count as texture on either side), stays under ``p_tex`` times the rectangle's (sand has
+    grain, rubber and metal do not).
 
 The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
@@ -26,6 +36,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
@@ -35,6 +46,7 @@ from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Segmenter, rect_wei
 
 _SQRT3_2 = 0.8660254037844386
 _TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
+_CLIP_LEVEL = 0.97  # a channel this close to the sensor's top has lost the pixel's chroma
 
 
 def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
@@ -43,14 +55,28 @@ def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
     return s / float(size * size)
 
 
+def _window_moment(a: Float[Array, "H W"], kernel: np.ndarray) -> Float[Array, "h w"]:
+    # Sum of a * kernel over every window lying inside ``a`` (index = the window's top-left).
+    k = jnp.asarray(kernel, a.dtype)[None, None]
+    return jax.lax.conv_general_dilated(a[None, None], k, (1, 1), "VALID")[0, 0]
+
+
 def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float[Array, "H W"]:
-    """Local intensity spread (std), the smallest over the four size x size windows that have
-    the pixel at a corner (the image edge-replicated): a pixel next to an edge keeps the spread
-    of its own side."""
+    """Local intensity spread: the std of the residual of a least-squares plane over a
+    size x size window (shading is a gradient, not texture), the smallest over the four windows
+    that have the pixel at a corner (the image edge-replicated): a pixel next to an edge keeps
+    the spread of its own side."""
     k = size - 1
     p = jnp.pad(intensity, k, mode="edge")
     mean = _box_mean(p, size)
     var = jnp.maximum(_box_mean(p * p, size) - mean * mean, 0.0)
+    # The plane's share: x and y offsets from the window's centre are orthogonal, so each
+    # slope's explained variance is (sum I dx)^2 / (n sum dx^2).
+    offsets = np.arange(size) - 0.5 * k
+    ramp = np.tile(offsets, (size, 1))
+    sxx = float(size * np.sum(offsets**2))
+    sx, sy = _window_moment(p, ramp), _window_moment(p, ramp.T)
+    var = jnp.maximum(var - (sx * sx + sy * sy) / (sxx * size * size), 0.0)
     h, w = intensity.shape
     # var[a, b] is the window whose top-left pixel is (a - k, b - k): the pixel's own windows
     # start at offsets 0 (pixel bottom/right) and k (pixel top/left).
@@ -59,6 +85,52 @@ def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float
     # Double where: sqrt has an infinite derivative at 0 (a flat window).
     pos = v > 1e-12
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
+
+
+_HIST_BINS = 64
+_LOG_I_MIN = float(np.log(1.0 / 255.0))  # one 8-bit step: the darkest intensity binned
+
+
+def log_histogram(
+    intensity: Float[Array, "H W"],
+) -> tuple[Float[Array, " B"], Float[Array, " B"]]:
+    """The frame's histogram of log intensity (every second pixel each way, 64 bins from one
+    8-bit step to 1, smoothed over five bins) and the bins' centres (log intensity)."""
+    log_i = jnp.log(jnp.clip(intensity[::2, ::2], 1.0 / 255.0, 1.0))
+    scale = _HIST_BINS / -_LOG_I_MIN
+    idx = jnp.clip(jnp.floor((log_i - _LOG_I_MIN) * scale).astype(jnp.int32), 0, _HIST_BINS - 1)
+    counts = jnp.zeros(_HIST_BINS, intensity.dtype).at[idx.ravel()].add(1.0)
+    kernel = jnp.asarray([1.0, 2.0, 3.0, 2.0, 1.0], intensity.dtype) / 9.0
+    centres = _LOG_I_MIN + (jnp.arange(_HIST_BINS, dtype=intensity.dtype) + 0.5) / scale
+    return jnp.convolve(counts, kernel, mode="same"), centres
+
+
+def valley(
+    hist: Float[Array, " B"],
+    centres: Float[Array, " B"],
+    lo: Float[Array, ""],
+    hi: Float[Array, ""],
+    bright: Bool[Array, ""],
+) -> Float[Array, ""]:
+    """The intensity threshold in the histogram's valley between the wheel and the background.
+
+    ``lo``, ``hi`` (log intensity) bound the search. The background's population is the
+    histogram's highest peak on the background's side (below ``hi`` for a ``bright`` wheel,
+    above ``lo`` for a dark one); the search stops there, so that the valley found lies between
+    the wheel and the background nearest to it. The threshold is the middle of the emptiest
+    bins (within 0.001 % of the pixels of the minimum: ties); ``exp(hi)`` when the range holds
+    no bin. Not differentiable (a choice of bin). :class:`AdaptiveSegmenter` searches the bright
+    side (a metal wheel)."""
+    beyond = jnp.where(bright, centres < hi, centres > lo)
+    mode = centres[jnp.argmax(jnp.where(beyond, hist, -1.0))]
+    a = jnp.where(bright, jnp.maximum(mode, lo), lo)
+    b = jnp.where(bright, hi, jnp.minimum(mode, hi))
+    inside = (centres >= a) & (centres <= b)
+    lowest = jnp.min(jnp.where(inside, hist, jnp.inf))
+    emptiest = inside & (hist <= lowest + 1e-5 * jnp.sum(hist))
+    n = jnp.sum(emptiest.astype(centres.dtype))
+    middle = jnp.sum(jnp.where(emptiest, centres, 0.0)) / jnp.maximum(n, 1.0)
+    return jnp.exp(jnp.where(jnp.any(inside), middle, hi))
 
 
 def wheel_chroma(image: Float[Array, "H W 3"], weight: Float[Array, "H W"]) -> Float[Array, ""]:
@@ -78,12 +150,15 @@ class AdaptiveSegmenter(Segmenter):
     """The default segmenter (module docstring): the paper's H/S mask for a coloured wheel, an
     intensity/chroma/texture mask for a black or metal one; no setting needed for either.
 
-    ``seg``: the H/S test's parameters. The grey branch's leaves: ``p_int`` (fraction of the way
-    from the wheel's intensity to the frame's mean where the threshold sits), ``t_int`` (its
-    sigmoid width, same units), ``p_chroma`` and ``chroma_floor`` (the chroma radius is
+    ``seg``: the H/S test's parameters. The grey branch's leaves: ``p_a_int`` and ``int_floor``
+    (a black wheel's intensity threshold ``p_a_int * I_w + int_floor``), ``p_valley`` (a factor
+    on a metal wheel's threshold found in the histogram's valley; 1 by default), ``t_int`` (the
+    intensity sigmoid's width, relative), ``p_chroma`` and ``chroma_floor`` (the chroma radius is
     ``p_chroma * max(rectangle chroma spread, chroma_floor)``, RGB units), ``t_chroma``,
     ``p_tex`` and ``tex_floor`` (texture limit ``p_tex * max(rectangle texture, tex_floor)``,
-    intensity units), ``t_tex``; ``min_wheel_chroma`` the switch (not differentiable).
+    intensity units), ``t_tex``. Not differentiable: ``min_wheel_chroma`` (the switch) and
+    ``p_d_int`` (the top of the valley's search: a metal wheel's threshold is at most
+    ``p_d_int * I_w``).
     """
 
     seg: SegmentationParams = SegmentationParams()
@@ -91,11 +166,12 @@ class AdaptiveSegmenter(Segmenter):
     p_a_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.6)
     int_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.03)
     p_d_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.6)
+    p_valley: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
     t_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.08)
     p_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
     chroma_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.012)
     t_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.008)
-    p_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=2.0)
+    p_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
     tex_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.006)
     t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
 
@@ -126,12 +202,20 @@ class AdaptiveSegmenter(Segmenter):
         tex = texture((r + g + b) / 3.0)
 
         i_w = rect_mean(intensity)
-        # +1: the wheel is darker than the frame on average (black), -1: brighter (metal). The
-        # wheel is everything on its side of a threshold scaled from I_w, the paper's P_a/P_d:
-        # a black wheel's shaded side is darker still, a metal one's highlights brighter.
+        # +1: the wheel is darker than the frame on average (black), -1: brighter (metal).
+        # Black: the paper-style threshold p_a_int * I_w + int_floor (its shaded side is darker
+        # still). Metal: the histogram's valley below I_w (module docstring), at most
+        # p_d_int * I_w.
         dark = i_w <= jnp.mean(intensity)
         side = jnp.where(dark, 1.0, -1.0)
-        edge = jnp.where(dark, self.p_a_int * i_w + self.int_floor, self.p_d_int * i_w)
+        hist, centres = log_histogram(jax.lax.stop_gradient(intensity))
+        ceiling = self.p_d_int * i_w
+        found = valley(hist, centres, jnp.log(0.1 * i_w), jnp.log(ceiling), jnp.asarray(True))
+        edge = jnp.where(
+            dark,
+            self.p_a_int * i_w + self.int_floor,
+            self.p_valley * jax.lax.stop_gradient(found),
+        )
         m_int = jax.nn.sigmoid(side * (edge - intensity) / (self.t_int * edge))
 
         dq1, dq2 = q1 - rect_mean(q1), q2 - rect_mean(q2)
@@ -141,6 +225,9 @@ class AdaptiveSegmenter(Segmenter):
         pos = dist2 > 1e-24
         dist_q = jnp.where(pos, jnp.sqrt(jnp.where(pos, dist2, 1.0)), 0.0)
         m_chroma = jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma)
+        # A clipped channel (a highlight, an over-exposed face) leaves no chroma to judge.
+        clipped = jax.nn.sigmoid((smooth(jnp.max(image, axis=-1)) - _CLIP_LEVEL) / 0.01)
+        m_chroma = 1.0 - (1.0 - m_chroma) * (1.0 - clipped)
 
         limit_tex = self.p_tex * jnp.maximum(rect_mean(tex), self.tex_floor)
         # Only a bright wheel needs texture (grey sand can be as bright as shaded metal); on a

@@ -10,6 +10,12 @@ weighs the model against its own inputs, with no threshold taken from the render
   where the mask says otherwise is the disagreement. Lugs, holes, hub and highlights never reach
   this ring on a wheel the mask understood, so a disagreement over more than a tenth of the ring
   (36 degrees of rim) means the mask and the model describe different pictures.
+- **no wheel in the soil beyond the rim**: on the lower half of a ring at 1.2 times the rim
+  radius (beyond lugs of up to a fifth of the radius), below the equivalent line's extension
+  (all of the half ring without contact), only soil can be. A mask that is wheel there took a
+  cast shadow or the soil itself for wheel, and the boundary it implies (or its absence: "no
+  contact") is that mistake's. Over more than a tenth of those samples, the frame fails. Above
+  the line the background may take the wheel's colour (a colour cast) without harm.
 - **residuals vs the outline's own noise**: the rim points' residual variance against the
   variance of the boundary points around the two short end tangents (the same mask's edge noise,
   measured where the model is a straight line over a few pixels). Their ratio, an F statistic,
@@ -65,6 +71,7 @@ class Plausibility(eqx.Module):
     """The evidence and the verdict for one frame (all scalars).
 
     ``ring_disagreement`` (fraction of the ring inside the rim where mask and model disagree),
+    ``outer_wheel`` (fraction of the soil beyond the rim, on a ring, that the mask calls wheel),
     ``rim_f`` (rim residual variance over the boundary's local edge noise variance) and
     ``rim_f_limit`` (its 99.9 % point), ``above_centre`` (fraction of boundary weight above O),
     ``end_gap_px`` (the larger distance from a boundary end to the rim), ``chord_ratio``
@@ -75,6 +82,7 @@ class Plausibility(eqx.Module):
     """
 
     ring_disagreement: Float[Array, ""]
+    outer_wheel: Float[Array, ""]
     rim_f: Float[Array, ""]
     rim_f_limit: Float[Array, ""]
     above_centre: Float[Array, ""]
@@ -95,8 +103,11 @@ TESTS: tuple[str, ...] = (
     "the wheel-soil boundary stops short of the rim (A or B would be extrapolated)",
     "the wheel-soil boundary does not span the chord its sinkage implies",
     "the soil surface does not continue beyond the rim at the boundary's ends",
+    "the wheel mask reaches into the soil beyond the rim (a shadow or the soil taken for wheel)",
 )
 MAX_RING_DISAGREEMENT = 0.1
+OUTER_RING = 1.2  # x the rim radius: beyond lugs of up to 0.2 r
+MAX_OUTER_WHEEL = 0.1
 MAX_ABOVE_CENTRE = 0.05
 END_GAP_FRACTION = 0.1
 CHORD_RATIO_RANGE = (0.5, 1.5)
@@ -126,6 +137,26 @@ def ring_disagreement(
     wrong = jnp.where(wheel_side, 1.0 - m, m)
     n_seen = jnp.sum(seen.astype(dt))
     return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
+
+
+def outer_wheel(
+    mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
+) -> Array:
+    """Mean of the mask, in [0, 1], on the lower half of a ring at ``OUTER_RING`` times the rim
+    radius (the part inside the image), below the equivalent line's extension where there is
+    contact: what the mask calls wheel where only soil can be. Differentiable w.r.t. ``mask``;
+    the check fails above ``MAX_OUTER_WHEEL``."""
+    height, width = mask.shape
+    dt = mask.dtype
+    rho = OUTER_RING * p[2]
+    phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=dt)  # y down: the lower half
+    u, v = rho * jnp.cos(phi), rho * jnp.sin(phi)
+    x, y = p[0] + sign * u, p[1] + v
+    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    seen = seen & (~contact | (v > p[3] * u + p[4]))
+    m = _bilinear(mask, x, y)
+    n_seen = jnp.sum(seen.astype(dt))
+    return jnp.sum(jnp.where(seen, m, 0.0)) / jnp.maximum(n_seen, 1.0)
 
 
 def _segment(
@@ -270,6 +301,7 @@ def plausibility(
     chord_wrong = (chord_ratio < CHORD_RATIO_RANGE[0]) | (span / chord_full > CHORD_RATIO_RANGE[1])
 
     ring = ring_disagreement(mask, p, ev.sign, contact)
+    outer = outer_wheel(mask, p, ev.sign, contact)
     clearance = ev.settings.end_clearance_px.astype(dt)
     fails = jnp.stack(
         [
@@ -278,6 +310,7 @@ def plausibility(
             contact & (gap > clearance + jnp.maximum(3.0, END_GAP_FRACTION * p[2])),
             contact & chord_wrong,
             contact & _soil_beyond(image, p, ev.sign),
+            outer > MAX_OUTER_WHEEL,
         ]
     )
     code = jnp.where(jnp.any(fails), 1 + jnp.argmax(fails), 0).astype(jnp.int32)
@@ -289,6 +322,7 @@ def plausibility(
     shift = jnp.sqrt(shift_rms**2 + 3.0 * fade**2)
     return Plausibility(
         ring_disagreement=ring,
+        outer_wheel=outer,
         rim_f=rim_f,
         rim_f_limit=rim_f_limit,
         above_centre=above,
