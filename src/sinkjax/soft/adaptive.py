@@ -55,10 +55,18 @@ def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
     return s / float(size * size)
 
 
-def _window_moment(a: Float[Array, "H W"], kernel: np.ndarray) -> Float[Array, "h w"]:
-    # Sum of a * kernel over every window lying inside ``a`` (index = the window's top-left).
-    k = jnp.asarray(kernel, a.dtype)[None, None]
-    return jax.lax.conv_general_dilated(a[None, None], k, (1, 1), "VALID")[0, 0]
+def _window_moments(a: Float[Array, "H W"], size: int) -> tuple[Array, Array]:
+    # Sums of a * (x offset) and a * (y offset) from each size x size window's centre, over
+    # every window lying inside ``a`` (index = the window's top-left): column (row) sums of
+    # the window, weighted by their offsets (slices: a convolution is slower on a CPU).
+    height, width = a.shape
+    h, w = height - size + 1, width - size + 1
+    cols = jax.lax.reduce_window(a, 0.0, jax.lax.add, (size, 1), (1, 1), "VALID")
+    rows = jax.lax.reduce_window(a, 0.0, jax.lax.add, (1, size), (1, 1), "VALID")
+    offsets = [j - 0.5 * (size - 1) for j in range(size)]
+    sx = sum(o * cols[:, j : j + w] for j, o in enumerate(offsets))
+    sy = sum(o * rows[i : i + h, :] for i, o in enumerate(offsets))
+    return sx, sy
 
 
 def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float[Array, "H W"]:
@@ -72,10 +80,8 @@ def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float
     var = jnp.maximum(_box_mean(p * p, size) - mean * mean, 0.0)
     # The plane's share: x and y offsets from the window's centre are orthogonal, so each
     # slope's explained variance is (sum I dx)^2 / (n sum dx^2).
-    offsets = np.arange(size) - 0.5 * k
-    ramp = np.tile(offsets, (size, 1))
-    sxx = float(size * np.sum(offsets**2))
-    sx, sy = _window_moment(p, ramp), _window_moment(p, ramp.T)
+    sxx = float(size * np.sum((np.arange(size) - 0.5 * k) ** 2))
+    sx, sy = _window_moments(p, size)
     var = jnp.maximum(var - (sx * sx + sy * sy) / (sxx * size * size), 0.0)
     h, w = intensity.shape
     # var[a, b] is the window whose top-left pixel is (a - k, b - k): the pixel's own windows
