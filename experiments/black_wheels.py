@@ -12,6 +12,7 @@ Developed on seed 7; the reported run uses seed 8.
 
     python experiments/black_wheels.py                 # 4 presets x 3 recordings x 8 frames
     python experiments/black_wheels.py --quick         # 4 presets x 1 recording x 3 frames
+    python experiments/black_wheels.py --seed 9        # another unseen seed: ..._seed9.md
 """
 
 from __future__ import annotations
@@ -185,6 +186,9 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument(
+        "--out", type=Path, default=RESULTS, help="folder for black_wheels[_seedN].json and .md"
+    )
     args = ap.parse_args()
     if args.quick:
         args.recordings, args.frames = 1, 3
@@ -193,11 +197,13 @@ def main() -> None:
     coloured = coloured_identical(args.seed, 3, args.width, args.height)
     summary = summarise(rows)
     secs = time.perf_counter() - t0
-    RESULTS.mkdir(exist_ok=True)
-    payload = {"args": vars(args), "summary": summary, "coloured": coloured, "rows": rows}
-    (RESULTS / "black_wheels.json").write_text(json.dumps(payload, indent=1, default=float))
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = "black_wheels" if args.seed == EVAL_SEED else f"black_wheels_seed{args.seed}"
+    settings = {**vars(args), "out": str(args.out)}
+    payload = {"args": settings, "summary": summary, "coloured": coloured, "rows": rows}
+    (args.out / f"{stem}.json").write_text(json.dumps(payload, indent=1, default=float))
     md = markdown(summary, coloured, args, secs)
-    (RESULTS / "black_wheels.md").write_text(md)
+    (args.out / f"{stem}.md").write_text(md)
     print(md)
 
 
