@@ -645,14 +645,21 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
 
     # The removed guard's probe, on this frame's evidence: with plain square roots of the weights
     # the residuals' derivative with respect to the boundary weights is not finite.
-    mask = wheel_mask(image, C.from_raw(raw), rig.confidence_rect)
-    s = SoftSettings()
-    outline = refine_outline(image, extract_outline(mask, s), s)
-    ev = build_evidence(outline, hough_rim(outline, *mask.shape, s), travel_sign(rig.travel), s)
-    assert np.any(np.asarray(ev.w_line) == 0) and np.any(np.asarray(ev.w_line) > 0)
-    g_naive = jax.grad(
-        lambda w: jnp.sum(naive_residuals(ev.start, eqx.tree_at(lambda e: e.w_line, ev, w)))
-    )(ev.w_line)
+    # Jitted: run op by op, these stages compile every primitive on first use (slower).
+    @jax.jit
+    def probe(image: jax.Array, raw: jax.Array) -> tuple[jax.Array, jax.Array]:
+        mask = wheel_mask(image, C.from_raw(raw), rig.confidence_rect)
+        s = SoftSettings()
+        outline = refine_outline(image, extract_outline(mask, s), s)
+        rim = hough_rim(outline, *mask.shape, s)
+        ev = build_evidence(outline, rim, travel_sign(rig.travel), s)
+        g_naive = jax.grad(
+            lambda w: jnp.sum(naive_residuals(ev.start, eqx.tree_at(lambda e: e.w_line, ev, w)))
+        )(ev.w_line)
+        return ev.w_line, g_naive
+
+    w_line, g_naive = probe(image, raw)
+    assert np.any(np.asarray(w_line) == 0) and np.any(np.asarray(w_line) > 0)
     assert not np.all(np.isfinite(np.asarray(g_naive)))
 
     static = dict(
