@@ -12,6 +12,7 @@ Shared fixtures (each returns a function, so a test says what it needs in its ar
 - ``hsi_reference``: the textbook HSI of one pixel (math.acos), the colour stages' reference.
 - ``rendered``: synthetic frames from :mod:`sinkjax.synth` with their truth, once per session.
 - ``synthetic_recording``: a recording on disk (frames, truth.csv, rig.toml), once per session.
+- ``computed_once``: a file computed once per session and shared by the xdist workers.
 - ``use_method``: install a stand-in estimator under both method names (classic and soft).
 - ``write_video``: a small grey-level video whose frame i has level (step * i) mod 250.
 """
@@ -37,6 +38,7 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
+import fcntl  # noqa: E402
 import functools  # noqa: E402
 import math  # noqa: E402
 import shutil  # noqa: E402
@@ -218,6 +220,34 @@ def synthetic_recording(tmp_path_factory: pytest.TempPathFactory) -> Callable[..
         return copy_to
 
     return recording
+
+
+@pytest.fixture(scope="session")
+def computed_once(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Callable[[str, Callable[[Path], None]], Path]:
+    """``computed_once(name, write) -> path``: the file ``name`` in a folder this session's
+    workers share (``pytest -n N``; else the session's own), written by ``write(path)`` in
+    whichever worker asks first while the others wait on a file lock, then read by all. For an
+    expensive, deterministic start (a model trained for a few hundred steps) that tests on
+    either worker need: every worker runs single-threaded, so it would compute the same bits."""
+    root = tmp_path_factory.getbasetemp()
+    if hasattr(request.config, "workerinput"):  # an xdist worker: the session's folder
+        root = root.parent
+    folder = root / "computed_once"
+    folder.mkdir(exist_ok=True)
+
+    def get(name: str, write: Callable[[Path], None]) -> Path:
+        path = folder / name
+        with open(folder / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+            if not path.exists():
+                part = folder / f"{name}.part"
+                write(part)
+                os.replace(part, path)
+        return path
+
+    return get
 
 
 # ----------------------------------------------------------------------------- the pipeline
