@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import functools
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import equinox as eqx
@@ -31,13 +32,22 @@ def recording(preset: str = "full", seed: int = 11, n: int = 3) -> L.LabelledRec
     return L.synthetic_recording(n, seed=seed, preset=preset, width=W, height=H)
 
 
-@functools.cache
-def started(kind: str) -> L.LearnedSegmenter:
-    """A model that imitated the exact masks: its fit measures every frame."""
-    batches = L.frame_batches([recording()])
-    seg, ce = L.imitate(L.build(kind, key=1), batches, steps=120, learning_rate=2e-2)
-    assert ce < 0.15
-    return seg
+@pytest.fixture(scope="session")
+def started(computed_once) -> Callable[[str], L.LearnedSegmenter]:
+    """``started(kind)``: a model that imitated the exact masks: its fit measures every frame.
+    Imitated once per session, by whichever worker needs it first (saved and loaded exactly)."""
+
+    @functools.cache
+    def model(kind: str) -> L.LearnedSegmenter:
+        def imitate(path: Path) -> None:
+            batches = L.frame_batches([recording()])
+            seg, ce = L.imitate(L.build(kind, key=1), batches, steps=120, learning_rate=2e-2)
+            assert ce < 0.15
+            L.save_segmenter(path, seg)
+
+        return L.load_segmenter(computed_once(f"learn_started_{kind}.seg", imitate))
+
+    return model
 
 
 def _directional(seg: L.LearnedSegmenter, batch: L.FrameBatch, d, eps: float) -> float:
@@ -51,7 +61,7 @@ def _directional(seg: L.LearnedSegmenter, batch: L.FrameBatch, d, eps: float) ->
 
 
 @pytest.mark.parametrize("kind", ["mlp", "cnn"])
-def test_frame_loss_gradient_matches_finite_differences(kind: str) -> None:
+def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> None:
     seg = started(kind)
     batch = L.frame_batches([recording()])[0]
     as64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64) if eqx.is_array(x) else x, seg)
@@ -127,7 +137,7 @@ def test_bad_segmenter_files_give_clear_errors(tmp_path: Path) -> None:
         assert name
 
 
-def test_training_a_few_steps_lowers_the_loss() -> None:
+def test_training_a_few_steps_lowers_the_loss(started) -> None:
     batches = L.frame_batches([recording()])
     # A good model with its mask shrunk (logits - 2): one frame fails, the others read deep.
     good = started("mlp")
@@ -140,7 +150,7 @@ def test_training_a_few_steps_lowers_the_loss() -> None:
     assert L.score(res.segmenter, batches).loss == pytest.approx(res.train_after.loss)
 
 
-def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path, capsys) -> None:
+def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path, capsys, started) -> None:
     rec = recording()
     seg = started("mlp")
     assert isinstance(seg, Segmenter)
