@@ -127,6 +127,5 @@ def test_gradients_pass_through_a_fixed_recording_rim(rendered) -> None:
     g = float(value_grad(x0)[1])
     h = 1e-3
     fd = (float(value_grad(x0 + h)[0]) - float(value_grad(x0 - h)[0])) / (2 * h)
-    print(f"rim gradient {g!r} vs finite difference {fd!r}")
     assert np.isfinite(g)
     assert g == pytest.approx(fd, rel=0.05, abs=1e-3)
