@@ -222,29 +222,6 @@ def synthetic_recording(tmp_path_factory: pytest.TempPathFactory) -> Callable[..
     return recording
 
 
-# The test files holding the slowest tests (a minute or more each under `pytest -n 2`), run
-# first so that xdist's two workers share them and finish on the short ones together: started
-# last, one of them would keep one worker busy for two minutes while the other idles. Whole
-# files move, so module fixtures are not set up twice; the order within a file is kept.
-_SLOW_FILES = (
-    "test_experiments.py",
-    "test_learn.py",
-    "test_soft.py",
-    "test_torch_learn.py",
-    "test_executables.py",
-    "test_torch.py",
-    "test_calibration.py",
-)
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    def rank(item: pytest.Item) -> int:
-        name = item.path.name
-        return _SLOW_FILES.index(name) if name in _SLOW_FILES else len(_SLOW_FILES)
-
-    items.sort(key=rank)
-
-
 @pytest.fixture(scope="session")
 def computed_once(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
