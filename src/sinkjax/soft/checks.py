@@ -117,26 +117,36 @@ def _bilinear(a: Float[Array, "H W"], x: Array, y: Array) -> Array:
     return jax.scipy.ndimage.map_coordinates(a, [y, x], order=1, mode="nearest")
 
 
+def _on_ring(
+    mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, rho: Array, phi: Array
+) -> tuple[Array, Array, Array, Array]:
+    """The mask at angles ``phi`` on a circle of radius ``rho`` about the fitted centre: the
+    values, whether each sample lies inside the image, and its wheel-frame (u, v) offsets."""
+    height, width = mask.shape
+    u, v = rho * jnp.cos(phi), rho * jnp.sin(phi)
+    x, y = p[0] + sign * u, p[1] + v
+    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+    return _bilinear(mask, x, y), seen, u, v
+
+
+def _mean_where(values: Array, seen: Array) -> Array:
+    n_seen = jnp.sum(seen.astype(values.dtype))
+    return jnp.sum(jnp.where(seen, values, 0.0)) / jnp.maximum(n_seen, 1.0)
+
+
 def ring_disagreement(
     mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
 ) -> Array:
     """Mean disagreement, in [0, 1], of the mask with the fitted model on a ring just inside
     the rim: 1 - mask above the equivalent line (all round without ``contact``), the mask below
     it. Differentiable w.r.t. ``mask``; the check fails above ``MAX_RING_DISAGREEMENT``."""
-    height, width = mask.shape
-    dt = mask.dtype
     r = p[2]
     rho = r - jnp.maximum(2.0, 0.04 * r)
-    phi = jnp.linspace(0.0, 2 * jnp.pi, N_RING_SAMPLES, endpoint=False, dtype=dt)
-    u, v = rho * jnp.cos(phi), rho * jnp.sin(phi)
-    x, y = p[0] + sign * u, p[1] + v
-    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    m = _bilinear(mask, x, y)
+    phi = jnp.linspace(0.0, 2 * jnp.pi, N_RING_SAMPLES, endpoint=False, dtype=mask.dtype)
+    m, seen, u, v = _on_ring(mask, p, sign, rho, phi)
     # Wheel above the equivalent line (y down); without contact the whole ring is wheel.
     wheel_side = ~contact | (v < p[3] * u + p[4])
-    wrong = jnp.where(wheel_side, 1.0 - m, m)
-    n_seen = jnp.sum(seen.astype(dt))
-    return jnp.sum(jnp.where(seen, wrong, 0.0)) / jnp.maximum(n_seen, 1.0)
+    return _mean_where(jnp.where(wheel_side, 1.0 - m, m), seen)
 
 
 def outer_wheel(
@@ -146,17 +156,9 @@ def outer_wheel(
     radius (the part inside the image), below the equivalent line's extension where there is
     contact: what the mask calls wheel where only soil can be. Differentiable w.r.t. ``mask``;
     the check fails above ``MAX_OUTER_WHEEL``."""
-    height, width = mask.shape
-    dt = mask.dtype
-    rho = OUTER_RING * p[2]
-    phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=dt)  # y down: the lower half
-    u, v = rho * jnp.cos(phi), rho * jnp.sin(phi)
-    x, y = p[0] + sign * u, p[1] + v
-    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    seen = seen & (~contact | (v > p[3] * u + p[4]))
-    m = _bilinear(mask, x, y)
-    n_seen = jnp.sum(seen.astype(dt))
-    return jnp.sum(jnp.where(seen, m, 0.0)) / jnp.maximum(n_seen, 1.0)
+    phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=mask.dtype)  # y down: lower half
+    m, seen, u, v = _on_ring(mask, p, sign, OUTER_RING * p[2], phi)
+    return _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
 
 
 def _segment(
