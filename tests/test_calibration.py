@@ -23,7 +23,7 @@ import pytest
 
 import sinkjax.calibration as C
 from sinkjax.app.cli import main
-from sinkjax.calibration import cli as calibration_cli, loss as L
+from sinkjax.calibration import cli as calibration_cli, loss as L, optimise as O
 from sinkjax.calibration.augment import (
     MIRED_LOG_GAINS_PER_100,
     brightness_contrast,
@@ -33,6 +33,8 @@ from sinkjax.calibration.augment import (
     soft_shadow,
 )
 from sinkjax.rig import Rig, SegmentationParams, load_rig
+from sinkjax.soft.batch import SoftRecording
+from sinkjax.soft.rim import RecordingRim
 
 
 def same_rig(a: Rig, b: Rig) -> bool:
@@ -273,7 +275,7 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
     """A cheap smooth stand-in for the estimator: sinkage 40 P_d(S), theta1 60 P_d(H)."""
     state = {"status": 0, "boundary": 100.0, "nan": False}
 
-    def measure(image, seg, *, rect, travel, wheel_radius_mm):
+    def measure(image, seg, *, rect, travel, wheel_radius_mm, rim=None):
         nan = jnp.nan if state["nan"] else 0.0
         return types.SimpleNamespace(
             sinkage_mm=40.0 * seg.p_d_sat + jnp.mean(image) + nan,
@@ -285,6 +287,8 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
         )
 
     monkeypatch.setattr(L, "measure", measure)
+    # No rim to find in the stand-in's blank frames (and no real estimator to compile).
+    monkeypatch.setattr(O, "labelled_rim", lambda frames, rig, rim: RecordingRim.per_frame())
     C.loss_and_grad.clear_cache()
     yield state
     C.loss_and_grad.clear_cache()
@@ -589,6 +593,30 @@ def test_calibration_lowers_the_loss_deterministically(
     assert res.loss_after < 0.8 * res.loss_before
     # Same labels, same steps: the CLI wrote exactly this rig.
     assert same_rig(load_rig(cli_run[0]), res.rig)
+
+
+def test_loss_measures_the_labelled_frames_as_estimate_does(recording: Path) -> None:
+    """Calibration minimises the error of the numbers the rig will report: each labelled
+    frame's values in the loss are those `sinkjax estimate` gives it (one SoftRecording over
+    the frames, which finds their rim itself), not those of the frame's own rim."""
+    rig = load_rig(recording / "rig.toml")
+    frames = C.read_labels(recording / "LABELS.csv", rig)
+    rim = O.labelled_rim(frames, rig, "recording")
+    assert float(rim.use) == 1.0  # the three frames show one rim
+    static = dict(
+        rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=float(rig.wheel_radius_mm)
+    )
+    args = (jnp.asarray(frames.images), jnp.asarray(frames.targets), jax.random.key(0))
+    raw = C.to_raw(rig.segmentation)
+    held = C.loss_and_grad(raw, *args, rim, **static).frames
+    own = C.loss_and_grad(raw, *args, **static).frames
+    rows = SoftRecording()([np.asarray(im) for im in frames.images], rig, list(frames.names))
+    for row, values, status in zip(rows, np.asarray(held.values), held.status, strict=True):
+        assert row.status.code == int(status)
+        reported = [row.sinkage_mm, row.theta1_deg, row.theta2_deg]
+        np.testing.assert_allclose(np.array(reported, float), values, rtol=1e-6, atol=1e-6)
+    # Each frame's own rim gives other numbers: the test above can tell the two apart.
+    assert np.max(np.abs(np.asarray(own.values) - np.asarray(held.values))) > 1e-3
 
 
 def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Path, str]) -> None:

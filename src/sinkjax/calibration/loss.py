@@ -31,6 +31,7 @@ from ..geometry import travel_sign
 from ..rig import SegmentationParams
 from ..soft.adaptive import default_segmenter
 from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure_from_mask
+from ..soft.rim import RecordingRim
 from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig, augment
 
@@ -175,10 +176,13 @@ def frame_loss(
     rect: tuple[int, int, int, int],
     travel: str,
     wheel_radius_mm: float,
+    rim: RecordingRim | None = None,
 ) -> tuple[Float[Array, ""], FrameLoss]:
-    """One frame's loss (sum over its measured cells plus the penalties) and what it saw."""
+    """One frame's loss (sum over its measured cells plus the penalties) and what it saw.
+    ``rim``: the recording's rim to measure with (as ``sinkjax estimate`` does); None: the
+    frame's own."""
     seg = from_raw(raw)
-    est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim)
     # The mask measure() made (the default segmenter): the contrast term looks at the same one.
     mask = default_segmenter(seg)(image, rect)
     return _estimate_loss(est, mask, target, travel_sign(travel), wheel_radius_mm)
@@ -250,6 +254,7 @@ def loss_and_grad(
     images_u8: UInt8[Array, "N H W 3"],
     targets: Float[Array, "N 3"],
     key: PRNGKeyArray,
+    rim: RecordingRim | None = None,
     *,
     rect: tuple[int, int, int, int],
     travel: str,
@@ -262,6 +267,7 @@ def loss_and_grad(
     Taking the gradient frame by frame lets a frame whose fit produced non-finite values (and
     so a NaN implicit gradient) drop out of the gradient; its constant penalty still counts in
     the loss. With ``use_augment`` each frame first gets a random lighting change from ``key``.
+    ``rim`` (traced; None: each frame's own) is the recording's rim every frame is measured with.
     """
     dt = jnp.result_type(float)
     images = images_u8.astype(dt) / 255.0
@@ -270,7 +276,9 @@ def loss_and_grad(
         images = jax.vmap(lambda im, k: augment(im, k, config))(images, keys)
     targets = targets.astype(dt)
     n_cells = jnp.maximum(jnp.sum(jnp.isfinite(targets)), 1).astype(dt)
-    one = functools.partial(frame_loss, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm)
+    one = functools.partial(
+        frame_loss, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim
+    )
     (losses, frames), grads = jax.vmap(jax.value_and_grad(one, has_aux=True), in_axes=(None, 0, 0))(
         raw, images, targets
     )

@@ -27,6 +27,8 @@ import optax
 from jaxtyping import Array, PRNGKeyArray
 
 from ..rig import Rig, SegmentationParams
+from ..soft.batch import SoftRecording
+from ..soft.rim import RecordingRim
 from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig
 from .checks import Checks, run_checks
@@ -95,6 +97,7 @@ class CalibrationResult:
     after_loss: float = math.nan
     grid_best_loss: float = math.nan  # the best grid point's (NaN without a grid)
     checks: Checks | None = None
+    rim: str = "per-frame rim"  # what the labelled frames were measured with, in words
 
     @property
     def loss_after(self) -> float:
@@ -109,6 +112,7 @@ class CalibrationResult:
                 f"{self.best_step} of {len(self.losses) - 1}; {self.seconds:.0f} s)",
                 f"median |error| before: {self.before.line()}",
                 f"median |error| after:  {self.after.line()}",
+                f"labelled frames measured with the {self.rim}",
                 f"[segmentation] {params}",
                 *([] if self.checks is None else self.checks.lines(self.grid_best_loss)),
             ]
@@ -187,6 +191,7 @@ def calibrate(
     callback: Callable[[int, float], None] | None = None,
     grid: dict[str, tuple[float, ...]] | None = GRID,
     starts: int = N_STARTS,
+    rim: str | RecordingRim = "recording",
 ) -> CalibrationResult:
     """Tune ``rig.segmentation`` to labelled frames: grid, then Adam; returns the calibrated rig.
 
@@ -200,7 +205,15 @@ def calibrate(
     frames as labelled and under a random lighting change. The result's ``checks`` say whether
     the last descent converged, which frames disagree with the rest, and the leave-one-out error.
     ``losses`` is the final descent's loss per step (from its starting point).
-    Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0 or ``starts`` < 1.
+    ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
+    ``sinkjax estimate`` measures them: their rim circle is found once, from the frames
+    themselves with ``rig``'s thresholds (:class:`~sinkjax.soft.batch.SoftRecording`), and every
+    frame is measured with it at every point, so that the loss minimised is the error of the
+    numbers the calibrated rig will report (each frame's own rim where the frames show no common
+    circle); "frame": each frame's own rim (a camera that moves relative to the wheel); a
+    :class:`~sinkjax.soft.rim.RecordingRim`: that rim.
+    Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0, ``starts`` < 1 or another
+    ``rim``.
     """
     from tqdm import tqdm
 
@@ -210,6 +223,7 @@ def calibrate(
             f"{starts}"
         )
     t0 = time.perf_counter()
+    held = labelled_rim(frames, rig, rim)
     images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
     static = dict(
         rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=float(rig.wheel_radius_mm)
@@ -218,7 +232,7 @@ def calibrate(
 
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
         # Positional arrays, keyword statics: one compiled function for every caller.
-        return loss_and_grad(r, images, targets, k, **static, **augmenting)  # type: ignore[arg-type]
+        return loss_and_grad(r, images, targets, k, held, **static, **augmenting)  # type: ignore[arg-type]
 
     def noisy(r: Array, step: int) -> Array:
         k = jax.random.fold_in(key, step)
@@ -290,7 +304,23 @@ def calibrate(
             last.losses,
             last.stopped_early,
         ),
+        rim=held.describe(),
     )
+
+
+def labelled_rim(frames: LabelledFrames, rig: Rig, rim: str | RecordingRim) -> RecordingRim:
+    """The rim circle the labelled frames are measured with (see :func:`calibrate`)."""
+    if isinstance(rim, RecordingRim):
+        return rim
+    if rim == "frame":
+        return RecordingRim.per_frame()
+    if rim != "recording":
+        raise ValueError(f"rim must be 'recording', 'frame' or a RecordingRim, got {rim!r}")
+    recording = SoftRecording()
+    images = [np.asarray(im) for im in frames.images]
+    recording(images, rig, list(frames.names))
+    found = recording.rim_for(*images[0].shape[:2])
+    return RecordingRim.per_frame() if found is None else found
 
 
 def _errors(out: LossAndGrad, targets: np.ndarray) -> Errors:
