@@ -57,3 +57,8 @@ def test_rig_with_bom_and_misspelt_key(tmp_path):
     (tmp_path / "seg.toml").write_text(good + "[segmentation]\np_a_hu = 1.2\n")
     with pytest.raises(RigError, match=r"unknown \[segmentation\] key 'p_a_hu'.*'p_a_hue'"):
         load_rig(tmp_path / "seg.toml")
+    (tmp_path / "veto.toml").write_text(good + "[segmentation]\nveto_fraction = 0.8\n")
+    assert float(load_rig(tmp_path / "veto.toml").segmentation.veto_fraction) == 0.8
+    (tmp_path / "veto.toml").write_text(good + "[segmentation]\nveto_fraction = -0.1\n")
+    with pytest.raises(RigError, match="veto_fraction must be >= 0"):
+        load_rig(tmp_path / "veto.toml")

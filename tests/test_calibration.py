@@ -209,14 +209,16 @@ def test_raw_parameters_round_trip_and_stay_valid() -> None:
         p_a_sat=2.5,
         temperature_hue_deg=3.0,
         temperature_sat=0.05,
+        veto_fraction=0.6,
     )
     back = C.from_raw(C.to_raw(seg)).as_dict()
     for k, v in seg.as_dict().items():
         assert back[k] == pytest.approx(v, rel=1e-12)
     for value in (-1e3, -30.0, 0.0, 30.0, 1e3):
-        d = C.from_raw(jnp.full(6, value, jnp.float32)).as_dict()
+        d = C.from_raw(jnp.full(len(C.RAW_NAMES), value, jnp.float32)).as_dict()
         assert 0 < d["p_d_hue"] < 1 < d["p_a_hue"] and 0 < d["p_d_sat"] < 1 < d["p_a_sat"]
         assert d["temperature_hue_deg"] > 0 and d["temperature_sat"] > 0
+        assert d["veto_fraction"] > 0
 
 
 def naive_residuals(p: jax.Array, ev) -> jax.Array:
@@ -636,11 +638,11 @@ def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Pat
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
 
     def central(i: int, h: float) -> float:
-        e = jnp.zeros(6).at[i].set(h)
+        e = jnp.zeros(len(C.RAW_NAMES)).at[i].set(h)
         return (float(loss(raw + e).loss) - float(loss(raw - e).loss)) / (2 * h)
 
     checked = 0
-    for i in range(6):
+    for i in range(len(C.RAW_NAMES)):
         fd1, fd2 = central(i, 1e-4), central(i, 2e-5)
         # The loss is piecewise smooth (an outline point appears, the Hough circle moves a bin);
         # where the two step sizes disagree a jump lies within the step: no derivative to test.
@@ -699,11 +701,11 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
 
     def central(i: int, h: float) -> float:
-        e = jnp.zeros(6).at[i].set(h)
+        e = jnp.zeros(len(C.RAW_NAMES)).at[i].set(h)
         return (float(loss_grad(raw + e)[0]) - float(loss_grad(raw - e)[0])) / (2 * h)
 
     checked = 0
-    for i in range(6):
+    for i in range(len(C.RAW_NAMES)):
         fd1, fd2 = central(i, 1e-4), central(i, 2e-5)
         if abs(fd1 - fd2) > 0.01 * abs(fd1) + 1e-7:  # a jump within the step: see above
             continue

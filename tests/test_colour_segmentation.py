@@ -16,6 +16,7 @@ from sinkjax.soft.colour import chromaticity, circular_mean_deg, rgb_to_hsi
 from sinkjax.soft.segmentation import (
     confidence_means,
     paper_mask,
+    reference_mask,
     smooth,
     soft_mask,
     soft_open,
@@ -198,3 +199,48 @@ def test_wheel_mask_gradients_finite_jit_and_vmap() -> None:
     leaves = jax.tree_util.tree_leaves(gs)
     assert all(np.isfinite(float(v)) for v in leaves) and abs(float(gs.p_a_hue)) > 0
     assert np.all(np.isfinite(np.asarray(gx)))
+
+
+def test_veto_fraction_keeps_dust_blends_when_relaxed() -> None:
+    """Soil-coloured dust on the lower wheel blends the wheel's colour towards the soil's: the
+    default veto removes it, a relaxed one (calibration's leaf) keeps it, and the veto's edge is
+    where the rule puts it (NumPy: the blend's distance past the bisector, in separations)."""
+    wall, soil, green = (
+        np.array([0.5, 0.5, 0.5]),
+        np.array([0.55, 0.42, 0.3]),
+        np.array([0.25, 0.7, 0.35]),
+    )
+    dust = 0.15 * green + 0.85 * soil
+    img = np.empty((60, 80, 3))
+    img[:] = wall
+    img[45:] = soil
+    yy, xx = np.mgrid[:60, :80]
+    wheel = (yy - 30) ** 2 + (xx - 40) ** 2 < 14**2
+    img[wheel] = green
+    img[wheel & (yy >= 36)] = dust
+    rect = (34, 20, 12, 5)
+
+    def chroma(rgb: np.ndarray) -> np.ndarray:
+        r, g, b = rgb
+        return np.array([2 * r - g - b, np.sqrt(3) * (g - b)]) / (r + g + b)
+
+    def beyond(ref: np.ndarray) -> float:
+        # How far past the bisector of wheel and ``ref`` the blend lies, in their separations.
+        qw, qr, qd = chroma(green), chroma(ref), chroma(dust)
+        sep = np.linalg.norm(qr - qw)
+        return float((np.sum((qd - qw) ** 2) - np.sum((qd - qr) ** 2)) / (2 * sep) / sep)
+
+    past = max(beyond(soil), beyond(wall))
+    assert 0.3 < past < 0.9
+    inside = wheel & (yy >= 38) & (yy <= 41) & (np.abs(xx - 40) < 6)  # away from every edge
+    x = jnp.asarray(img)
+
+    def veto(fraction: float) -> np.ndarray:
+        return np.asarray(reference_mask(x, rect, fraction))
+
+    assert veto(0.25)[inside].max() < 0.05
+    assert veto(1.0)[inside].min() > 0.95
+    assert veto(past - 0.05)[inside].max() < 0.5 < veto(past + 0.05)[inside].min()
+    g = jax.grad(lambda f: jnp.sum(reference_mask(x, rect, f) * jnp.asarray(inside, x.dtype)))(past)
+    assert np.isfinite(float(g)) and float(g) > 0
+    assert float(SegmentationParams().veto_fraction) == 0.25

@@ -40,9 +40,14 @@ class SegmentationParams(eqx.Module):
     p_a_sat: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.8)
     temperature_hue_deg: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=2.0)
     temperature_sat: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.02)
+    # The soil/background veto (soft.segmentation.reference_mask): a pixel is vetoed when it lies
+    # nearer the soil's or the background's chromaticity than the wheel's by this fraction of
+    # their separation. Larger keeps more blends of wheel and soil colour (dust on the wheel);
+    # from 0.5 on only pixels beyond the other reference itself are vetoed.
+    veto_fraction: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.25)
 
     def as_dict(self) -> dict[str, float]:
-        return {name: float(getattr(self, name)) for name in SEG_FIELDS}
+        return {name: float(getattr(self, name)) for name in SEGMENTATION_KEYS}
 
 
 # The paper's H/S test needs a wheel with colour: below this mean chroma (saturation units, the
@@ -58,6 +63,8 @@ SEG_FIELDS = (
     "temperature_hue_deg",
     "temperature_sat",
 )
+# The H/S band's fields above, and the rig file's [segmentation] keys: the band and the veto.
+SEGMENTATION_KEYS = (*SEG_FIELDS, "veto_fraction")
 
 
 class Rig(eqx.Module):
@@ -197,7 +204,7 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     seg_data = data.get("segmentation", {})
     if not isinstance(seg_data, dict):
         raise RigError(f"{source}: [segmentation] must be a table")
-    _check_keys(seg_data, SEG_FIELDS, source, "[segmentation] ")
+    _check_keys(seg_data, SEGMENTATION_KEYS, source, "[segmentation] ")
     seg_kwargs: dict[str, Any] = {}
     for name, value in seg_data.items():
         if (
@@ -242,6 +249,8 @@ def _check_segmentation(seg: SegmentationParams, source: str) -> None:
             raise RigError(f"{source}: [segmentation] needs 0 <= p_d_{kind} < 1 < p_a_{kind}")
     if d["temperature_hue_deg"] <= 0 or d["temperature_sat"] <= 0:
         raise RigError(f"{source}: [segmentation] temperatures must be > 0")
+    if d["veto_fraction"] < 0:
+        raise RigError(f"{source}: [segmentation] veto_fraction must be >= 0")
 
 
 def read_rig_toml(path: str | Path) -> dict[str, Any]:

@@ -7,7 +7,8 @@ loss between the estimated and the measured z0, theta1, theta2 of labelled frame
 Parameters live in an unconstrained *raw* space that keeps them valid by construction:
 ``P_d = sigmoid(raw)`` in (0, 1), ``P_a = 1 + softplus(raw)`` > 1, temperatures
 ``scale * softplus(raw)`` > 0 (scale 1 degree of hue, 0.01 of saturation, so that one Adam step
-moves every parameter by a comparable amount).
+moves every parameter by a comparable amount), the soil/background veto's fraction
+``0.25 softplus(raw)`` > 0.
 
 Loss of one labelled cell: pseudo-Huber of the error in units of 1 mm (sinkage) or 1 degree
 (angles); empty cells are masked out; the total is the mean over measured cells. A frame whose
@@ -43,10 +44,19 @@ BOUNDARY_TARGET = 4.0 * MIN_BOUNDARY_POINTS
 # above / below the labelled soil line, weighted like CONTRAST_WEIGHT mm (or deg) of error.
 STRIP_NEAR, STRIP_FAR = 0.03, 0.12
 CONTRAST_WEIGHT = 5.0
-RAW_NAMES = ("p_d_hue", "p_a_hue", "p_d_sat", "p_a_sat", "temperature_hue_deg", "temperature_sat")
+RAW_NAMES = (
+    "p_d_hue",
+    "p_a_hue",
+    "p_d_sat",
+    "p_a_sat",
+    "temperature_hue_deg",
+    "temperature_sat",
+    "veto_fraction",
+)
 RAW_LIMIT = 12.0
 _TEMPERATURE_UNIT_HUE_DEG = 1.0
 _TEMPERATURE_UNIT_SAT = 0.01
+_VETO_UNIT = 0.25  # the default veto fraction: raw 0.54 (softplus 1)
 _OK = Status.OK.code
 
 
@@ -62,7 +72,7 @@ def _inv_softplus(y: float) -> float:
     return y + math.log(-math.expm1(-y))
 
 
-def to_raw(seg: SegmentationParams) -> Float[Array, " 6"]:
+def to_raw(seg: SegmentationParams) -> Float[Array, " 7"]:
     """Unconstrained raw vector (order :data:`RAW_NAMES`) of valid segmentation parameters."""
     d = seg.as_dict()
     return jnp.asarray(
@@ -73,11 +83,13 @@ def to_raw(seg: SegmentationParams) -> Float[Array, " 6"]:
             _inv_softplus(d["p_a_sat"] - 1.0),
             _inv_softplus(d["temperature_hue_deg"] / _TEMPERATURE_UNIT_HUE_DEG),
             _inv_softplus(d["temperature_sat"] / _TEMPERATURE_UNIT_SAT),
+            # A veto of 0 (none wanted: a rig may say so) sits just above it.
+            _inv_softplus(max(d["veto_fraction"], 1e-6) / _VETO_UNIT),
         ]
     )
 
 
-def from_raw(raw: Float[Array, " 6"]) -> SegmentationParams:
+def from_raw(raw: Float[Array, " 7"]) -> SegmentationParams:
     """Segmentation parameters of a raw vector: always 0 < P_d < 1 < P_a, temperatures > 0.
 
     Raw values are clipped to +-:data:`RAW_LIMIT` so that the strict inequalities survive float32
@@ -91,6 +103,7 @@ def from_raw(raw: Float[Array, " 6"]) -> SegmentationParams:
         p_a_sat=1.0 + jax.nn.softplus(raw[3]),
         temperature_hue_deg=_TEMPERATURE_UNIT_HUE_DEG * jax.nn.softplus(raw[4]),
         temperature_sat=_TEMPERATURE_UNIT_SAT * jax.nn.softplus(raw[5]),
+        veto_fraction=_VETO_UNIT * jax.nn.softplus(raw[6]),
     )
 
 
@@ -169,7 +182,7 @@ def boundary_contrast(
 
 
 def frame_loss(
-    raw: Float[Array, " 6"],
+    raw: Float[Array, " 7"],
     image: Float[Array, "H W 3"],
     target: Float[Array, " 3"],
     *,
@@ -242,7 +255,7 @@ class LossAndGrad(eqx.Module):
     """Mean loss over measured cells, its gradient w.r.t. the raw parameters, each frame."""
 
     loss: Float[Array, ""]
-    grad: Float[Array, " 6"]
+    grad: Float[Array, " 7"]
     frames: FrameLoss
 
 
@@ -250,7 +263,7 @@ class LossAndGrad(eqx.Module):
     jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "use_augment", "config")
 )
 def loss_and_grad(
-    raw: Float[Array, " 6"],
+    raw: Float[Array, " 7"],
     images_u8: UInt8[Array, "N H W 3"],
     targets: Float[Array, "N 3"],
     key: PRNGKeyArray,

@@ -2,7 +2,8 @@
 
 The loss is piecewise smooth (a frame stops measuring when a threshold crosses a point) and
 gradient descent from a mask that is far off can sit on a plateau. So calibration first scores a
-coarse grid over P_d/P_a of hue and saturation (:data:`GRID`, plus the rig's own point), then
+coarse grid over P_d/P_a of hue and saturation (:data:`GRID`, plus the rig's own point; its best
+few points again with the soil/background veto relaxed, :data:`VETO_RELAXED`), then
 runs Adam from the best few grid points (a short probe each, the rest of the steps from the best
 probe) and keeps the best point seen anywhere: the result is never worse, on the labelled frames,
 than the grid's best point. Each descent keeps its best point, goes back there with a smaller step
@@ -46,6 +47,10 @@ GRID: dict[str, tuple[float, ...]] = {
     "p_a_sat": (1.4, 2.5),
 }
 N_STARTS = 3
+# The best grid points are also scored with the soil/background veto relaxed to this fraction
+# (SegmentationParams.veto_fraction; 0.25 by default): dust that blends the wheel's colour
+# towards the soil's passes the band only then, and Adam alone would take many steps to get there.
+VETO_RELAXED = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,7 +201,8 @@ def calibrate(
     """Tune ``rig.segmentation`` to labelled frames: grid, then Adam; returns the calibrated rig.
 
     Deterministic (``seed`` only drives the augmentations). Scores the rig's own point and every
-    point of ``grid`` (P_d/P_a values; None: no grid, Adam from the rig alone), then runs Adam
+    point of ``grid`` (P_d/P_a values; None: no grid, Adam from the rig alone), the ``starts``
+    best of those again with the veto relaxed (:data:`VETO_RELAXED`), then runs Adam
     from the ``starts`` best of them: ``steps // (2 starts)`` probe steps each, the remaining
     steps from the best probe's best point. The calibrated rig is the lowest loss seen anywhere
     (grid points included). Each descent keeps its best point, goes back there with half the step
@@ -248,6 +254,13 @@ def calibrate(
         r = to_raw(seg).astype(dt)
         points.append((r, call(r)))
     n_grid = len(points)
+    if grid:
+        best = sorted(range(n_grid), key=lambda i: float(points[i][1].loss))[:starts]
+        relaxed = float(to_raw(SegmentationParams(veto_fraction=VETO_RELAXED))[6])
+        for i in best:
+            r = points[i][0].at[6].set(relaxed)
+            points.append((r, call(r)))
+        n_grid = len(points)
     order = sorted(range(n_grid), key=lambda i: float(points[i][1].loss))
     chosen = order[: min(starts, n_grid)] if grid else [0]
     probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))

@@ -96,16 +96,16 @@ def wheel_mask(
     veto is what removes a background that a colour cast has made wheel-coloured.
     """
     mask = paper_mask(image, seg, rect)
-    return mask * reference_mask(image, rect) if reference else mask
+    return mask * reference_mask(image, rect, seg.veto_fraction) if reference else mask
 
 
 # Rows at the top and bottom of the image (fraction of its height) whose median colours are the
 # background's and the soil's: a side view has the wall above the wheel and the soil below it,
 # across the whole width (a wheel reaching into a strip covers far less than half of it).
 EDGE_ROWS_FRACTION = 0.03
-# A pixel is vetoed when it lies nearer the other reference by this fraction of the references'
-# separation: a blurred edge then stays with the band, which locates it to sub-pixel precision.
-VETO_FRACTION = 0.25
+# A pixel is vetoed when it lies nearer the other reference by a fraction of the references'
+# separation (SegmentationParams.veto_fraction, 0.25 by default): a blurred edge then stays with
+# the band, which locates it to sub-pixel precision.
 # Samples per side of the grid that stands for a traced confidence rectangle's pixels.
 RECT_SAMPLES = 32
 # The smallest spread of the wheel's chromaticity taken as real (1 % saturation: sensor noise).
@@ -133,7 +133,9 @@ def _rect_values(q: Float[Array, "H W 2"], rect: Rect) -> Float[Array, "N 2"]:
     return q[ys[:, None], xs[None, :]].reshape(-1, 2)
 
 
-def reference_mask(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
+def reference_mask(
+    image: Float[Array, "H W 3"], rect: Rect, veto_fraction: float | Float[Array, ""] = 0.25
+) -> Float[Array, "H W"]:
     """Soft veto in [0, 1]: 0 where a pixel's chromaticity is clearly nearer the soil's or the
     background's than the wheel's.
 
@@ -143,7 +145,9 @@ def reference_mask(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H 
     bottom rows. Each pixel is compared with the perpendicular bisector of wheel and reference
     (the nearest-mean rule), so the soil's own colour, not a band around the wheel's, decides.
     A reference closer to the wheel's than twice the wheel's own spread (MAD) is the wheel itself (a
-    strip the wheel fills) and vetoes nothing.
+    strip the wheel fills) and vetoes nothing. ``veto_fraction``: a pixel is vetoed once it lies
+    nearer the other reference by that fraction of the two references' separation (a calibratable
+    leaf: dust that blends the wheel's colour towards the soil's needs a larger one).
     """
     height = image.shape[0]
     # Sensor noise in the dark would scatter single pixels across the bisector: decide on
@@ -159,7 +163,7 @@ def reference_mask(image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H 
         sep = jnp.sqrt(jnp.sum((mu_c - mu_w) ** 2) + 1e-12)
         d_c = jnp.sum((q - mu_c[None, None, :]) ** 2, axis=-1)
         margin = (d_c - d_w) / (2.0 * sep)
-        m_c = jax.nn.sigmoid((margin + VETO_FRACTION * sep) / (0.05 * sep + 1e-3))
+        m_c = jax.nn.sigmoid((margin + veto_fraction * sep) / (0.05 * sep + 1e-3))
         # A reference within two spreads of the wheel's is the wheel itself; the spread is at
         # least the chromaticity's sensor/JPEG noise, so a clean uniform wheel gates it fully off.
         spread = jnp.maximum(sd_w, MIN_SPREAD)
