@@ -256,7 +256,7 @@ def calibrate(
     n_grid = len(points)
     if grid:
         best = sorted(range(n_grid), key=lambda i: float(points[i][1].loss))[:starts]
-        relaxed = float(to_raw(SegmentationParams(veto_fraction=VETO_RELAXED))[6])
+        relaxed = float(to_raw(SegmentationParams(veto_fraction=jnp.asarray(VETO_RELAXED)))[6])
         for i in best:
             r = points[i][0].at[6].set(relaxed)
             points.append((r, call(r)))
