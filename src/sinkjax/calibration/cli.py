@@ -99,5 +99,9 @@ def run_cli(args: argparse.Namespace) -> int:
     except OSError as e:
         raise RigError(f"cannot write {str(out)!r}: {e.strerror or e}") from e
     print(result.summary())
-    print(f"wrote {out}; measure with: sinkjax estimate IMAGES --rig {out}")
+    print(
+        f"wrote {out}; measure with it: save it as the rig.toml beside the recording's images "
+        f"(a recording's own rig.toml wins over --rig), or, for recordings without one, "
+        f"sinkjax estimate IMAGES --rig {out}"
+    )
     return 0
