@@ -492,6 +492,13 @@ def test_run_checks_by_hand() -> None:
     assert chk.converged
     # At point 1, y's loss per value (8 / 3) is above 2 while x's is 0: y disagrees.
     assert [d[0] for d in chk.disagreeing] == ["y"]
+    # Leave-one-out median 25 % (30 % and 20 %): above 10 %, the summary warns.
+    assert chk.loo_median_rel == pytest.approx(0.25)
+    assert any(line.startswith("WARNING") and "25 %" in line for line in chk.lines())
+    good = [np.array([[10, 20, 0], [10.5, 20, 30]], float)] * 2
+    fine = C.run_checks(losses, good, status, 0, frames, tail, stopped_early=False)
+    assert fine.loo_median_rel == pytest.approx(0.025)  # 0 and 5 %: no warning
+    assert not any(line.startswith("WARNING") for line in fine.lines())
 
 
 # ----------------------------------------------------------------------------- augmentations
