@@ -141,9 +141,9 @@ def test_segmenter_gradcheck_small() -> None:
     x = torch.rand(1, 3, 6, 7, dtype=torch.float64) * 0.5 + torch.tensor(
         [0.4, 0.25, 0.05], dtype=torch.float64
     ).view(1, 3, 1, 1)
+    values = _odd_params().as_dict()
     params = {
-        n: torch.tensor(v, dtype=torch.float64, requires_grad=True)
-        for n, v in _odd_params().as_dict().items()
+        n: torch.tensor(values[n], dtype=torch.float64, requires_grad=True) for n in st.SEG_FIELDS
     }
     fn = lambda img, *ps: st.soft_hsi_mask(
         img, dict(zip(st.SEG_FIELDS, ps, strict=True)), (1, 1, 3, 3)
@@ -359,9 +359,10 @@ def test_bridge_from_image(frames) -> None:
         return estimate_values(jax_measure_from_mask(im, mask, **kw))
 
     reference = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(imgs)))
+    # The band's thresholds (SEG_FIELDS); the soil/background veto keeps the rig's default.
+    values = rig.segmentation.as_dict()
     seg = {
-        n: torch.tensor(v, dtype=torch.float64, requires_grad=True)
-        for n, v in rig.segmentation.as_dict().items()
+        n: torch.tensor(values[n], dtype=torch.float64, requires_grad=True) for n in st.SEG_FIELDS
     }
     est = st.measure_torch(
         _chw(imgs),
