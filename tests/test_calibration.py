@@ -618,7 +618,8 @@ def test_loss_measures_the_labelled_frames_as_estimate_does(recording: Path) -> 
     args = (jnp.asarray(frames.images), jnp.asarray(frames.targets), jax.random.key(0))
     raw = C.to_raw(rig.segmentation)
     held = C.loss_and_grad(raw, *args, rim, **static).frames
-    own = C.loss_and_grad(raw, *args, **static).frames
+    # Each frame's own rim (the same compiled function as a recording's: one compile).
+    own = C.loss_and_grad(raw, *args, RecordingRim.per_frame(), **static).frames
     rows = SoftRecording()([np.asarray(im) for im in frames.images], rig, list(frames.names))
     for row, values, status in zip(rows, np.asarray(held.values), held.status, strict=True):
         assert row.status.code == int(status)
@@ -637,7 +638,10 @@ def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Pat
     )
 
     def loss(r: jax.Array):
-        return C.loss_and_grad(r, images, targets, jax.random.key(0), **static)
+        # Each frame's own rim, as a RecordingRim: the function calibrate() compiled.
+        return C.loss_and_grad(
+            r, images, targets, jax.random.key(0), RecordingRim.per_frame(), **static
+        )
 
     raw = C.to_raw(rig.segmentation)
     assert raw.dtype == jnp.float64

@@ -27,7 +27,8 @@ class RigError(ValueError):
 
 
 class SegmentationParams(eqx.Module):
-    """The paper's P_d/P_a for H and S, plus the soft method's temperatures.
+    """The paper's P_d/P_a for H and S, plus the soft method's temperatures and the strength of
+    its soil/background veto.
 
     Every field is a scalar array leaf so that ``jax.grad`` reaches it (calibration tunes them).
     H band: H_w + (P - 1) * 180 deg (circular); S band: [P_d * S_w, P_a * S_w] (the paper's).

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
-from ..rig import SegmentationParams
+from ..rig import SEGMENTATION_KEYS, SegmentationParams
 from ..soft.adaptive import default_segmenter
 from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure_from_mask
 from ..soft.rim import RecordingRim
@@ -44,15 +44,7 @@ BOUNDARY_TARGET = 4.0 * MIN_BOUNDARY_POINTS
 # above / below the labelled soil line, weighted like CONTRAST_WEIGHT mm (or deg) of error.
 STRIP_NEAR, STRIP_FAR = 0.03, 0.12
 CONTRAST_WEIGHT = 5.0
-RAW_NAMES = (
-    "p_d_hue",
-    "p_a_hue",
-    "p_d_sat",
-    "p_a_sat",
-    "temperature_hue_deg",
-    "temperature_sat",
-    "veto_fraction",
-)
+RAW_NAMES = SEGMENTATION_KEYS  # the raw vector's order: the H/S band, then the veto
 RAW_LIMIT = 12.0
 _TEMPERATURE_UNIT_HUE_DEG = 1.0
 _TEMPERATURE_UNIT_SAT = 0.01

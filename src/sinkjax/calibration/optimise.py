@@ -49,7 +49,8 @@ GRID: dict[str, tuple[float, ...]] = {
 N_STARTS = 3
 # The best grid points are also scored with the soil/background veto relaxed to this fraction
 # (SegmentationParams.veto_fraction; 0.25 by default): dust that blends the wheel's colour
-# towards the soil's passes the band only then, and Adam alone would take many steps to get there.
+# towards the soil's survives the veto only then, and Adam alone would take many steps to get
+# there.
 VETO_RELAXED = 1.0
 
 
