@@ -42,6 +42,7 @@ import fcntl  # noqa: E402
 import functools  # noqa: E402
 import math  # noqa: E402
 import shutil  # noqa: E402
+import tempfile  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, NamedTuple  # noqa: E402
@@ -220,6 +221,30 @@ def synthetic_recording(tmp_path_factory: pytest.TempPathFactory) -> Callable[..
         return copy_to
 
     return recording
+
+
+# Within this test session, the processes (the xdist workers) share one JAX compilation cache:
+# many tests compile the same functions at the same sizes, and a worker loads what the other
+# compiled instead of compiling it again (measured: pytest 16:41 -> 14:19 on this machine). It
+# lives in a folder made by the controlling process and is removed at the end; the library's
+# own caches (SINKJAX_CACHE_DIR) stay off.
+_XLA_CACHE_ENV = "SINKJAX_TEST_XLA_CACHE"
+_OWN_XLA_CACHE = pytest.StashKey[str]()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if not hasattr(config, "workerinput") and _XLA_CACHE_ENV not in os.environ:
+        os.environ[_XLA_CACHE_ENV] = tempfile.mkdtemp(prefix="sinkjax-test-xla-")
+        config.stash[_OWN_XLA_CACHE] = os.environ[_XLA_CACHE_ENV]
+    jax.config.update("jax_compilation_cache_dir", os.environ[_XLA_CACHE_ENV])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    own = config.stash.get(_OWN_XLA_CACHE, None)
+    if own is not None:
+        shutil.rmtree(own, ignore_errors=True)
+        os.environ.pop(_XLA_CACHE_ENV, None)
 
 
 @pytest.fixture(scope="session")
