@@ -198,8 +198,9 @@ def refine_outline(
     The default is one profile (``SoftSettings.refine_passes`` 1). Three, measured: the rim
     points of colour-cast footage 2.4 px -> 0.04 px off the rim (one profile: 0.8); with the
     first profile allowed 3 px, the benchmark's 90th percentile angle errors 0.83 / 0.96 ->
-    0.73 / 0.78 deg. But a mask shrunk inside the wheel (a learned segmenter's start, dust) then
-    had its rim pulled further in, onto the edges inside the wheel, and more frames fail.
+    0.73 / 0.78 deg. But with a mask shrunk inside the wheel (a learned segmenter's start) the
+    fit's rim came out smaller and more frames failed the plausibility tests; the cause is not
+    settled (the upper rim points themselves moved closer to the wheel's edge).
     """
     if settings.refine_passes == 0:
         return outline
