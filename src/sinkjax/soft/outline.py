@@ -22,6 +22,9 @@ from .settings import SoftSettings
 # A ridge must be at least this strong (mask units per pixel) to count as an edge point at all;
 # the soft weight then ramps up around ``SoftSettings.edge_level``.
 _EDGE_MIN = 0.03
+# The first edge profile moves a point at most this far (px); later ones, where they run (see
+# refine_outline), up to the profile's half length.
+_FIRST_REACH_PX = 2.0
 
 
 class Outline(eqx.Module):
@@ -219,10 +222,6 @@ def refine_outline(
         outline,
         (outline.x_px + t * outline.nx, outline.y_px + t * outline.ny),
     )
-
-
-# The first profile moves a point at most this far (px): further only where the next ones agree.
-_FIRST_REACH_PX = 2.0
 
 
 def _edge_offset(
