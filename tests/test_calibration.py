@@ -580,6 +580,7 @@ def cli_run(recording: Path) -> tuple[Path, str]:
     return out, buf.getvalue()
 
 
+@pytest.mark.slow
 def test_cli_writes_a_complete_calibrated_rig(recording: Path, cli_run: tuple[Path, str]) -> None:
     out, printed = cli_run
     rig, start = load_rig(out), load_rig(recording / "rig.toml")
@@ -664,6 +665,7 @@ def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Pat
     assert checked >= 4
 
 
+@pytest.mark.slow
 def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     recording: Path, cli_run: tuple[Path, str]
 ) -> None:
@@ -725,6 +727,7 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     assert checked >= 3
 
 
+@pytest.mark.slow
 def test_calibrated_rig_round_trips(recording: Path, cli_run: tuple[Path, str]) -> None:
     from sinkjax.rig import save_rig
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import pytest
 
 from sinkjax import synth as S
 from sinkjax.app.executables import ExecutableCache, cache_key
@@ -21,6 +22,7 @@ def _numbers(results) -> list[tuple]:
     return [(r.status, r.sinkage_mm, r.theta1_deg, r.theta2_deg, r.radius_px) for r in results]
 
 
+@pytest.mark.slow
 def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> None:
     image, rig = _frame()
     try:

@@ -704,6 +704,7 @@ def test_classic_rim_search_follows_the_hint(small_wheel_in_large_frame):
     assert wrong.status != "ok" and "225-375 px, from the rig's rim_radius_px" in wrong.message
 
 
+@pytest.mark.slow
 def test_soft_rim_search_follows_the_hint_with_one_compile(small_wheel_in_large_frame):
     import dataclasses
 

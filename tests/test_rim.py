@@ -107,6 +107,7 @@ def test_rows_do_not_depend_on_how_the_recording_is_cut(rendered) -> None:
     assert chunk.rims[images[0].shape[:2]] == rim
 
 
+@pytest.mark.slow
 def test_gradients_pass_through_a_fixed_recording_rim(rendered) -> None:
     """Calibration differentiates through the fit with the rim held: finite, and equal to a
     central finite difference."""

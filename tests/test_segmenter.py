@@ -35,6 +35,7 @@ def test_threshold_segmenter_equals_wheel_mask(draw_wheel) -> None:
     np.testing.assert_array_equal(np.asarray(got_t), np.asarray(ref_t))
 
 
+@pytest.mark.slow
 def test_default_segmenter_measures_a_coloured_wheel_as_the_threshold_mask(draw_wheel) -> None:
     # The default (adaptive) segmenter takes the H/S branch of a lax.cond on a coloured wheel:
     # the same computation, compiled in another context, so equal to float rounding.

@@ -174,6 +174,7 @@ def test_a_dip_counts_as_contact_only_at_the_bottom(dip_at_deg: float, contact: 
     assert (int(jnp.sum(inside)) >= 4) == contact
 
 
+@pytest.mark.slow
 def test_gradients_are_finite_on_a_shallow_frame() -> None:
     image, _ = _frame(CY + R - 0.7)
     rig = S.rig_for(S.Scene(width=320, height=240, centre_x_px=CX, centre_y_px=CY, radius_px=R))

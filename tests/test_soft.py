@@ -55,6 +55,7 @@ def test_accuracy_on_rendered_truth(preset: str, rendered) -> None:
         assert row.sinkage_std_mm > 0 and row.theta1_std_deg > 0
 
 
+@pytest.mark.slow
 def test_jit_equals_eager_and_vmap_equals_loop(rendered) -> None:
     images, _, rig = rendered("clean", n=2)
     kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
@@ -110,6 +111,7 @@ def test_one_compile_serves_every_rig_of_a_size(rendered) -> None:
     assert n_ok >= 1
 
 
+@pytest.mark.slow
 def test_gradients_match_finite_differences(rendered) -> None:
     images, truths, rig = rendered("full", n=3)
     i = next(j for j, t in enumerate(truths) if t.contact and t.sinkage_mm > 8)
@@ -171,6 +173,7 @@ _degenerate_grad = jax.jit(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["all_wheel", "all_soil", "no_contact"])
 def test_degenerate_frames_have_status_and_finite_gradients(case: str) -> None:
     image, rig = degenerate_images()[case]
