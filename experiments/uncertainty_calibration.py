@@ -1,16 +1,17 @@
 """Fit the soft estimator's uncertainty model (the UncertaintyModel defaults) on held-out data.
 
 Renders synthetic recordings of the full mix (lugs, shadows, all terrains, four image sizes) with
-two seeds DISJOINT from the benchmark's (2026), the experiments' (2024) and robustness (20261):
-one to fit on (``--fit-seed``), one to report on (``--eval-seed``). Each frame is measured three
-times with the same fit, once with the raw delta-method sigma (scale 1, no floor), once with a unit
-floor alone and once with no model term (what the estimator adds after the model: the soil-line
-ambiguity), so that any model's sigma = sqrt(k^2 ((a sigma_raw)^2 + (f sigma_unit)^2) + extra^2)
-(k the t's standard-deviation factor) is exact, the plausibility check's sigma factor included,
-without measuring again.
+seeds DISJOINT from the benchmark's (2026, 2027), the experiments' (2024) and robustness (20261):
+five to fit on (``--fit-seeds``, 1200 frames; fitted on the first two alone, the held-out coverage
+of z0 at 95 % was 89.4 %, on all five 92.1 %), one to report on (``--eval-seed``). Each frame is
+measured three times with the same fit, once with the raw delta-method sigma (scale 1, no floor),
+once with a unit floor alone and once with no model term (what the estimator adds after the model:
+the soil-line ambiguity), so that any model's sigma = sqrt(k^2 ((a sigma_raw)^2 + (f sigma_unit)^2)
++ extra^2) (k the t's standard-deviation factor) is exact, the plausibility check's sigma factor
+included, without measuring again.
 
 Per quantity (z0, θ1, θ2) the scale a, floor f and the degrees of freedom ν of a Student-t for
-error / sigma are fitted by maximum likelihood on the fit seed, beside a Gaussian (ν = ∞) fit for
+error / sigma are fitted by maximum likelihood on the fit seeds, beside a Gaussian (ν = ∞) fit for
 comparison (AIC). On the eval seed it reports the coverage of the central intervals value ±
 multiplier(p) sigma at p = 50/68/80/90/95/99 % for the current defaults, the Gaussian fit and
 the Student-t fits (ν per quantity, or one ν shared: ``--dof``), and draws the reliability
@@ -482,7 +483,7 @@ def _md(data: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--fit-seeds", type=int, nargs="+", default=[4242, 7331])
+    ap.add_argument("--fit-seeds", type=int, nargs="+", default=[4242, 7331, 5151, 6262, 3131])
     ap.add_argument("--eval-seed", type=int, default=9001)
     ap.add_argument("--recordings", type=int, default=40)
     ap.add_argument("--frames-per", type=int, default=6)

@@ -22,9 +22,6 @@ from .settings import SoftSettings
 # A ridge must be at least this strong (mask units per pixel) to count as an edge point at all;
 # the soft weight then ramps up around ``SoftSettings.edge_level``.
 _EDGE_MIN = 0.03
-# The first edge profile moves a point at most this far (px); later ones, where they run (see
-# refine_outline), up to the profile's half length.
-_FIRST_REACH_PX = 2.0
 
 
 class Outline(eqx.Module):
@@ -196,20 +193,19 @@ def refine_outline(
     (the further passes fade in between 1 and 1.5 px, so the result stays continuous in the
     image and the mask): there the first window already straddles the edge, and recentring on
     small, crowded frames (the corners where soil meets rim) added noise, not accuracy. No point
-    moves further than the profile's half length (the first profile, as far as 2 px).
+    moves further than the profile's half length.
 
-    The default is one profile (``SoftSettings.refine_passes`` 1). Three, measured: the rim
-    points of colour-cast footage 2.4 px -> 0.04 px off the rim (one profile: 0.8); with the
-    first profile allowed 3 px, the benchmark's 90th percentile angle errors 0.83 / 0.96 ->
-    0.73 / 0.78 deg. But with a mask shrunk inside the wheel (a learned segmenter's start) the
-    fit's rim came out smaller and more frames failed the plausibility tests; the cause is not
-    settled (the upper rim points themselves moved closer to the wheel's edge).
+    Three profiles are the default (``SoftSettings.refine_passes``; 1 is the former method).
+    Measured, one profile against three: the rim points of colour-cast footage 0.8 -> 0.04 px off
+    the rim; the benchmark's 90th percentile angle errors in ``experiments/results/benchmark.md``.
+    A mask that lies well inside the wheel (a learned segmenter's start, logits - 2) now meets a
+    rim placed on the wheel's edge, so the ring check flags more of its frames.
     """
     if settings.refine_passes == 0:
         return outline
     reach = settings.refine_half_width_px
     t = _edge_offset(image, outline, jnp.zeros_like(outline.x_px), settings)
-    t = jnp.clip(t, -_FIRST_REACH_PX, _FIRST_REACH_PX)
+    t = jnp.clip(t, -reach, reach)
     # 0 where the first profile moved a point by at most a third of its half length, 1 beyond half.
     far = jnp.clip((jnp.abs(t) - reach / 3.0) / (reach / 6.0), 0.0, 1.0)
     last = jnp.abs(t)

@@ -41,7 +41,7 @@ class SoftSettings(eqx.Module):
     - ``refine_half_width_px``, ``refine_step_px`` (static): the profile's half length along
       the normal and its sampling step; ``refine_passes`` (static): how many times the profile
       is taken, each centred where the last put the edge, where the mask's edge was more than a
-      third of the half length off (1 by default; 3 for colour-cast footage, see
+      third of the half length off (3 by default; 1 is the former single profile, see
       ``soft.outline.refine_outline``).
 
     Rim (``sinkjax.soft.hough``):
@@ -123,7 +123,7 @@ class SoftSettings(eqx.Module):
     contact_z: Float[Array, ""] = _scalar(3.09)
     refine_half_width_px: float = eqx.field(static=True, default=3.0)
     refine_step_px: float = eqx.field(static=True, default=0.5)
-    refine_passes: int = eqx.field(static=True, default=1)
+    refine_passes: int = eqx.field(static=True, default=3)
     centre_bin_px: int = eqx.field(static=True, default=4)
 
     def __check_init__(self) -> None:

@@ -108,21 +108,21 @@ class UncertaintyModel(eqx.Module):
     ``UncertaintyModel.raw()`` turns all of it off (scale 1, no floor, Gaussian, no adjustment).
     """
 
-    scale_sinkage: float = 0.846
-    scale_theta1: float = 1.266
-    scale_theta2: float = 1.492
-    floor_sinkage_px: float = 0.061
-    floor_theta1_deg: float = 0.028
-    floor_theta2_deg: float = 0.015
-    dof_sinkage: float = 6.46
-    dof_theta1: float = 2.57
-    dof_theta2: float = 2.77
+    scale_sinkage: float = 0.81
+    scale_theta1: float = 1.276
+    scale_theta2: float = 1.355
+    floor_sinkage_px: float = 0.046
+    floor_theta1_deg: float = 0.001
+    floor_theta2_deg: float = 0.0
+    dof_sinkage: float = 3.26
+    dof_theta1: float = 3.08
+    dof_theta2: float = 2.81
     # Per quantity (z0, θ1, θ2), the factor on the t's multiplier at each of ADJUST_LEVELS.
     level_adjust: tuple[tuple[float, ...], ...] = eqx.field(
         default=(
-            (0.874, 1.042, 1.056, 1.086, 0.992, 0.958),
-            (0.986, 0.97, 0.995, 1.014, 1.095, 0.958),
-            (0.932, 0.994, 0.974, 1.099, 1.086, 0.896),
+            (0.889, 1.031, 1.095, 1.014, 0.988, 0.972),
+            (0.98, 0.971, 0.981, 1.049, 1.066, 0.949),
+            (0.907, 0.987, 1.025, 1.06, 1.115, 0.906),
         ),
         static=True,
     )
