@@ -197,7 +197,8 @@ def refine_outline(
 
     Three profiles are the default (``SoftSettings.refine_passes``; 1 is the former method).
     Measured, one profile against three: the rim points of colour-cast footage 0.8 -> 0.04 px off
-    the rim; the benchmark's 90th percentile angle errors in ``experiments/results/benchmark.md``.
+    the rim; the benchmark's 90th percentile angle errors (seed 2026) 0.83 / 0.96 -> 0.73 / 0.78
+    deg, at about 3 ms more per 640x480 frame.
     A mask that lies well inside the wheel (a learned segmenter's start, logits - 2) now meets a
     rim placed on the wheel's edge, so the ring check flags more of its frames.
     """
