@@ -761,3 +761,35 @@ def test_calibrated_rig_round_trips(recording: Path, cli_run: tuple[Path, str]) 
 
     np.testing.assert_array_equal(values(back), values(rig))
     assert not np.array_equal(values(back), values(load_rig(recording / "rig.toml")))
+
+
+def test_the_returned_point_is_scored_with_the_rim_it_finds_itself() -> None:
+    # Points scored with the start's rim: the lowest (index 3) hides the rim, so with the rim
+    # it finds itself (none: each frame's own) its loss is 35; the grid's best (index 1) finds
+    # the start's rim and keeps its 0.5. The grid's best is returned, with that loss.
+    held = RecordingRim.fixed(100.0, 80.0, 60.0, 0.1)
+    losses = (2.0, 0.5, 0.9, 0.2)
+    points = [
+        (jnp.full(7, float(i)), types.SimpleNamespace(loss=jnp.asarray(v)))
+        for i, v in enumerate(losses)
+    ]
+    rims = {0: held, 1: held, 2: held, 3: RecordingRim.per_frame()}
+    scored: list[int] = []
+
+    def loss_with(raw, rim):
+        scored.append(int(raw[0]))
+        assert rim is rims[int(raw[0])]
+        return types.SimpleNamespace(loss=jnp.asarray(35.0))
+
+    chosen, (raw, out) = O._as_estimate_measures(
+        points, 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
+    )
+    assert chosen == 1 and float(out.loss) == 0.5 and int(raw[0]) == 1
+    assert scored == [3]  # only the point whose own rim differs is scored again
+    # When the lowest point finds the same rim, it stays, unscored again.
+    rims[3] = RecordingRim.fixed(100.0, 80.0, 60.0, 0.1)
+    scored.clear()
+    chosen, (_, out) = O._as_estimate_measures(
+        points, 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
+    )
+    assert chosen == 3 and float(out.loss) == 0.2 and scored == []
