@@ -174,26 +174,31 @@ def report(summary: dict, cfg: dict) -> str:
 
 
 def compare(summary: dict, baseline: dict, label: str) -> str:
-    """The soft method's flagged-vs-wrong and coverage, ``baseline`` (an earlier run) vs now."""
+    """Each method's flagged-vs-wrong counts and coverage, ``baseline`` (an earlier run) vs
+    now; a method whose counts did not change is left out."""
     f = lambda x: "-" if x is None or not np.isfinite(x) else f"{x:.1f}"
-    lines = [
-        "",
-        f"Soft method before ({label}) / after: ±1.96σ coverage of z0 over `ok` frames, and "
-        "the flagged-vs-wrong counts.",
-        "",
-        "| preset | cover z0 [%] | ok frames | wrong+ok | wrong+flagged | right+flagged | "
-        "right+ok |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for preset, now in summary["soft"].items():
-        old = baseline["soft"][preset]
-        cells = [f"{f(old['coverage_z0_pct'])} / {f(now['coverage_z0_pct'])}"]
-        cells.append(f"{old['statuses'].get('ok', 0)} / {now['statuses'].get('ok', 0)}")
-        cells += [
-            f"{old[k]} / {now[k]}"
-            for k in ("wrong_ok", "wrong_flagged", "right_flagged", "right_ok")
+    keys = ("wrong_ok", "wrong_flagged", "right_flagged", "right_ok")
+    lines = []
+    for method in ("soft", "classic"):
+        pairs = [(p, baseline[method][p], now) for p, now in summary[method].items()]
+        if all(old[k] == now[k] for _, old, now in pairs for k in keys):
+            continue
+        lines += [
+            "",
+            f"{method.capitalize()} method before ({label}) / after: ±1.96σ coverage of z0 over "
+            "`ok` frames, and the flagged-vs-wrong counts.",
+            "",
+            "| preset | cover z0 [%] | ok frames | wrong+ok | wrong+flagged | right+flagged | "
+            "right+ok |",
+            "|---|---:|---:|---:|---:|---:|---:|",
         ]
-        lines.append(f"| {preset} | " + " | ".join(cells) + " |")
+        for preset, old, now in pairs:
+            cells = [f"{f(old['coverage_z0_pct'])} / {f(now['coverage_z0_pct'])}"]
+            cells.append(f"{old['statuses'].get('ok', 0)} / {now['statuses'].get('ok', 0)}")
+            cells += [f"{old[k]} / {now[k]}" for k in keys]
+            lines.append(f"| {preset} | " + " | ".join(cells) + " |")
+    if not lines:
+        lines = ["", f"No method's counts changed against {label}."]
     return "\n".join(lines) + "\n"
 
 

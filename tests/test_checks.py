@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from sinkjax import synth as S
-from sinkjax.classic.estimator import implausibility, recording_radius_px
+from sinkjax.classic.estimator import estimate_classic, recording_radius_px
+from sinkjax.classic.plausible import implausibility, ring_disagreement, soil_ends_beyond_rim
 from sinkjax.result import FrameResult
+from sinkjax.rig import Rig
 from sinkjax.soft.checks import TESTS, message
 from sinkjax.soft.estimator import measure_from_mask
 from sinkjax.soft.rim import RecordingRim
@@ -90,6 +92,64 @@ def test_classic_implausibility() -> None:
     ]
     assert recording_radius_px(rows) == pytest.approx(101.0)
     assert recording_radius_px(rows[1:2]) is None
+
+
+def test_classic_flags_a_boundary_on_the_wheel_where_the_soil_does_not_go_on(draw_wheel) -> None:
+    # draw_wheel's red wheel (conftest: centre (160.3, 100.6), r 85.4 px) in soil below y = 165.2.
+    cx, cy, r, soil_y = 160.3, 100.6, 85.4, 165.2
+    rig = Rig(wheel_radius_mm=140.0, confidence_rect=(150, 30, 24, 12))
+    clean = draw_wheel()
+    res = estimate_classic(clean, rig, "clean")
+    assert res.status == Status.OK, res.message
+    true_z0_mm = (cy + r - soil_y) * 140.0 / r
+    assert res.sinkage_mm == pytest.approx(true_z0_mm, rel=0.1)
+    # Soil-coloured dust on the wheel's lower face, 22 px above the soil: the binary image calls
+    # it soil, and the classic boundary runs along the dust's top edge, on the wheel.
+    dusty = clean.copy()
+    yy, xx = np.mgrid[0 : dusty.shape[0], 0 : dusty.shape[1]]
+    dust = (np.hypot(xx - cx, yy - cy) < r - 1.0) & (yy > soil_y - 22.0)
+    dusty[dust] = clean[-1, 0]  # the soil's colour
+    res = estimate_classic(dusty, rig, "dusty")
+    assert res.status == Status.IMPLAUSIBLE
+    assert "does not continue beyond the rim" in res.message
+    # Its numbers are kept: 22 px more sinkage than the truth, to a pixel.
+    assert res.sinkage_mm == pytest.approx(true_z0_mm + 22.0 * 140.0 / r, abs=140.0 / r)
+
+    # The test itself, on the drawn geometry: A and B on the rim at a flat line at depth d.
+    def ends(y_line: float) -> tuple[np.ndarray, np.ndarray]:
+        v = y_line - cy
+        u = math.sqrt(r * r - v * v)
+        return np.array([u, v]), np.array([-u, v])
+
+    assert not soil_ends_beyond_rim(clean, (cx, cy), r, 0.0, *ends(soil_y), 1.0)
+    assert soil_ends_beyond_rim(dusty, (cx, cy), r, 0.0, *ends(soil_y - 22.0), 1.0)
+    # Travel to the left mirrors u: the same frame, the same verdicts.
+    assert not soil_ends_beyond_rim(clean, (cx, cy), r, 0.0, *ends(soil_y), -1.0)
+    assert soil_ends_beyond_rim(dusty, (cx, cy), r, 0.0, *ends(soil_y - 22.0), -1.0)
+
+
+def test_classic_ring_disagreement_is_the_share_of_the_rim_the_region_gets_wrong() -> None:
+    # A filled wheel region (r 80 px at (150, 100)) cut by a flat soil line 40 px below O.
+    cx, cy, r, depth = 150.0, 100.0, 80.0, 40.0
+    yy, xx = np.mgrid[0:240, 0:300]
+    ang = np.degrees(np.arctan2(yy - cy, xx - cx))
+    region = (np.hypot(xx - cx, yy - cy) <= r) & (yy < cy + depth)
+    for sign in (1.0, -1.0):
+        assert ring_disagreement(region, (cx, cy), r, 0.0, depth, sign) == pytest.approx(
+            0, abs=0.01
+        )
+    # A 72-degree wedge of the upper face lost (a highlight the band missed): a fifth of the
+    # ring disagrees, to the ring's sampling (1/256) and the wedge's pixel edges.
+    lost = region & (ang > -150) & (ang < -78)
+    share = ring_disagreement(region & ~lost, (cx, cy), r, 0.0, depth, 1.0)
+    assert share == pytest.approx(72 / 360, abs=0.01)
+    # Soil taken for wheel below the line over the lower half: the arc below the line
+    # (2 acos(depth / rho) of the ring at rho = r - 0.04 r) disagrees.
+    rho = r - 0.04 * r
+    below = 2 * math.degrees(math.acos(depth / rho)) / 360
+    shadowed = np.hypot(xx - cx, yy - cy) <= r
+    share = ring_disagreement(shadowed, (cx, cy), r, 0.0, depth, 1.0)
+    assert share == pytest.approx(below, abs=0.01)
 
 
 def test_implausible_status() -> None:

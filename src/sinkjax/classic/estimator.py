@@ -57,6 +57,7 @@ from .outline import (
     runs_of,
     wheel_outline,
 )
+from .plausible import image_implausibility, implausibility
 from .refine import ends_on_rim, refined_outline, x_extent_weights
 from .segmentation import (
     check_rect,
@@ -148,8 +149,9 @@ def estimate_classic(
     ``refine``, ``fit_failed`` also covers a binary image that lost part of the wheel face (an
     outline dipping inside the rim above O), which would otherwise read as a wrong sinkage.
     Never raises for bad image content. The classic method has no uncertainty: the ``*_std_*``
-    fields stay None. A result whose own outputs are implausible (:func:`implausibility`; with
-    ``recording_radius_px``, the recording's rim radius, also a rim far from it) keeps its
+    fields stay None. A result whose own outputs are implausible (:mod:`sinkjax.classic.plausible`:
+    a boundary above O or short of the rim, a soil surface that does not go on beyond the rim;
+    with ``recording_radius_px``, the recording's rim radius, also a rim far from it) keeps its
     numbers under status ``implausible`` with the reason. Every frame that reaches step 2 says
     it was segmented by ``"hue+saturation"`` (``segmenter_features``), whatever its status.
     """
@@ -201,7 +203,8 @@ def _estimate(
         )
     # Step 4: outline -> Hough rim -> boundary. Enclosed holes (lightening holes, hub,
     # highlights) are wheel: filled, they are no part of the outline.
-    contour, normals = wheel_outline(fill_holes(region))
+    filled = fill_holes(region)
+    contour, normals = wheel_outline(filled)
     inner = off_border(contour, img.shape)
     if np.count_nonzero(inner) < 50:
         return failed(
@@ -304,6 +307,7 @@ def _estimate(
         b_px=to_img(b_uv),
     )
     why = implausibility(uv[idx], a_uv, b_uv, r, margin, recording_radius_px)
+    why = why or image_implausibility(img, filled, (cx, cy), r, (k, bb), a_uv, b_uv, sign)
     return FrameResult(
         image=name,
         status=Status.IMPLAUSIBLE if why else Status.OK,
@@ -316,47 +320,6 @@ def _estimate(
         radius_px=r,
         overlay=overlay,
     )
-
-
-# A rim radius further than this fraction from the recording's is another circle (the camera is
-# fixed to the wheel: the rim is the same in every frame, docs/conventions.md §2).
-MAX_RADIUS_DEVIATION = 0.05
-# A boundary end further inside the rim than this fraction of r (beyond the margin) never met it.
-MAX_END_GAP_FRACTION = 0.1
-
-
-def implausibility(
-    boundary_uv: np.ndarray,
-    a_uv: np.ndarray,
-    b_uv: np.ndarray,
-    r: float,
-    margin: float,
-    recording_radius_px: float | None = None,
-) -> str:
-    """Why the classic method's own outputs cannot describe a wheel in soil ("" if they can).
-
-    ``boundary_uv`` (n, 2) are the wheel-soil boundary points in the wheel frame (px), A and B
-    its ends, ``r`` the rim radius and ``margin`` the band inside the rim that is not boundary.
-    The soil cannot reach above the wheel centre (the confidence rectangle is above the hub),
-    the boundary must meet the rim at both ends, and with ``recording_radius_px`` the rim must
-    be the recording's.
-    """
-    if recording_radius_px is not None and abs(r - recording_radius_px) > max(
-        3.0, MAX_RADIUS_DEVIATION * recording_radius_px
-    ):
-        return (
-            f"rim radius {r:.1f} px is far from the recording's {recording_radius_px:.1f} px: "
-            "another circle was taken for the rim"
-        )
-    if np.mean(boundary_uv[:, 1] < 0.0) > 0.05:
-        return "the wheel-soil boundary reaches above the wheel centre (segmentation?)"
-    gap = max(r - math.hypot(*a_uv), r - math.hypot(*b_uv))
-    if gap > margin + max(3.0, MAX_END_GAP_FRACTION * r):
-        return (
-            f"the wheel-soil boundary stops {gap:.0f} px short of the rim: it is not the soil "
-            "surface (segmentation?)"
-        )
-    return ""
 
 
 def recording_radius_px(results: list[FrameResult]) -> float | None:

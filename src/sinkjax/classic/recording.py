@@ -20,7 +20,8 @@ import numpy as np
 from ..result import FrameResult
 from ..rig import Rig
 from ..status import Status
-from .estimator import MAX_RADIUS_DEVIATION, estimate_classic, recording_radius_px
+from .estimator import estimate_classic, recording_radius_px
+from .plausible import MAX_RADIUS_DEVIATION
 
 # The recording's radius comes from its first this many readable frames of each image size.
 RIM_FRAMES = 8

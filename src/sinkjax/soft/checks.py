@@ -106,6 +106,16 @@ TESTS: tuple[str, ...] = (
     "the wheel mask reaches into the soil beyond the rim (a shadow or the soil taken for wheel)",
 )
 MAX_RING_DISAGREEMENT = 0.1
+# Where the "soil goes on beyond the rim" test looks, at each end of the boundary (the classic
+# method's plausibility test, sinkjax.classic.plausible, looks at the same places): the soil just
+# inside the rim, PROBE_INSIDE * r back along the line and PROBE_BELOW_PX below it; outside the
+# rim, PROBE_OUTSIDE * r along the line's extension, PROBE_BELOW_PX and PROBE_BELOW_PX +
+# PROBE_DROP * r below it (soil) and PROBE_ABOVE_PX above it (what lies above the surface). The
+# outside samples look like what is above when they are PROBE_NEARER times nearer to it in RGB
+# (squared: twice as near) and apart from the soil inside by more than PROBE_MIN_RGB.
+PROBE_INSIDE, PROBE_OUTSIDE, PROBE_DROP = 0.1, 0.15, 0.03
+PROBE_BELOW_PX, PROBE_ABOVE_PX = 4.0, 6.0
+PROBE_NEARER, PROBE_MIN_RGB = 4.0, 0.05
 OUTER_RING = 1.2  # x the rim radius: beyond lugs of up to 0.2 r
 MAX_OUTER_WHEEL = 0.1
 MAX_ABOVE_CENTRE = 0.05
@@ -239,8 +249,9 @@ def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " P"], sign: Arra
         t = side * jnp.stack([1.0, k]) / norm  # along the line, away from the wheel
         # Below the extension, just under it and 3 % of the radius further down: a
         # surface that falls away beyond the rim (a berm the wheel pushed up) is soil there.
-        out = e + 0.15 * r * t
-        pts = (e - 0.1 * r * t + 4.0 * n, out + 4.0 * n, out + (4.0 + 0.03 * r) * n, out - 6.0 * n)
+        out = e + PROBE_OUTSIDE * r * t
+        below, drop = PROBE_BELOW_PX * n, (PROBE_BELOW_PX + PROBE_DROP * r) * n
+        pts = (e - PROBE_INSIDE * r * t + below, out + below, out + drop, out - PROBE_ABOVE_PX * n)
         xy = [(p[0] + sign * q[0], p[1] + q[1]) for q in pts]
         inside = jnp.all(
             jnp.stack([(x >= 2) & (x <= width - 3) & (y >= 2) & (y <= height - 3) for x, y in xy])
@@ -248,7 +259,7 @@ def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " P"], sign: Arra
         c_in, c_out, c_low, c_up = (_patch_rgb(image, x, y) for x, y in xy)
         # Clearly more like the background: twice as close, and apart by more than 0.05 in RGB.
         looks_up = [
-            jnp.sum((c - c_in) ** 2) > 4.0 * jnp.sum((c - c_up) ** 2) + 0.05**2
+            jnp.sum((c - c_in) ** 2) > PROBE_NEARER * jnp.sum((c - c_up) ** 2) + PROBE_MIN_RGB**2
             for c in (c_out, c_low)
         ]
         lost.append(inside & looks_up[0] & looks_up[1])
