@@ -7,6 +7,11 @@ test keeps them, under status ``implausible`` with the reason.
   the recording's is another circle taken for the rim;
 - **a soil curve**: the boundary cannot reach above the wheel centre (the confidence rectangle,
   above the hub, would be buried), and it must meet the rim at both ends;
+- **the region agrees with the model**: on a ring just inside the rim, the binary wheel region
+  (holes filled) must be wheel above the equivalent line and not below it. Lugs, holes and
+  highlights never reach that ring on a wheel the binary image understood, so a disagreement over
+  more than a tenth of it (:data:`~sinkjax.soft.checks.MAX_RING_DISAGREEMENT`, as the soft
+  method's) means the image lost part of the wheel or took soil or shadow for it;
 - **the soil goes on beyond the rim**: the soil surface does not end at the wheel. Just outside
   the rim, past the lugs, below the equivalent line's extension, the image must look more like
   the soil just inside the rim than like what lies above the extension. When, at both ends, it
@@ -32,6 +37,8 @@ from ..soft.checks import (
     PROBE_MIN_RGB,
     PROBE_NEARER,
     PROBE_OUTSIDE,
+    RING_INSET,
+    RING_INSET_PX,
 )
 
 # A rim radius further than this fraction from the recording's is another circle (the camera is
@@ -140,7 +147,7 @@ def ring_disagreement(
     wheel below it (nearest pixel; samples outside the image are left out)."""
     height, width = region.shape
     cx, cy = centre_px
-    rho = r - max(2.0, 0.04 * r)
+    rho = r - max(RING_INSET_PX, RING_INSET * r)
     phi = np.linspace(0.0, 2.0 * np.pi, N_RING_SAMPLES, endpoint=False)
     u, v = rho * np.cos(phi), rho * np.sin(phi)
     x, y = cx + sign * u, cy + v

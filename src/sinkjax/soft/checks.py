@@ -106,6 +106,9 @@ TESTS: tuple[str, ...] = (
     "the wheel mask reaches into the soil beyond the rim (a shadow or the soil taken for wheel)",
 )
 MAX_RING_DISAGREEMENT = 0.1
+# The ring lies RING_INSET * r (at least RING_INSET_PX) inside the rim: clear of the rim's own
+# edge zone.
+RING_INSET, RING_INSET_PX = 0.04, 2.0
 # Where the "soil goes on beyond the rim" test looks, at each end of the boundary (the classic
 # method's plausibility test, sinkjax.classic.plausible, looks at the same places): the soil just
 # inside the rim, PROBE_INSIDE * r back along the line and PROBE_BELOW_PX below it; outside the
@@ -151,7 +154,7 @@ def ring_disagreement(
     the rim: 1 - mask above the equivalent line (all round without ``contact``), the mask below
     it. Differentiable w.r.t. ``mask``; the check fails above ``MAX_RING_DISAGREEMENT``."""
     r = p[2]
-    rho = r - jnp.maximum(2.0, 0.04 * r)
+    rho = r - jnp.maximum(RING_INSET_PX, RING_INSET * r)
     phi = jnp.linspace(0.0, 2 * jnp.pi, N_RING_SAMPLES, endpoint=False, dtype=mask.dtype)
     m, seen, u, v = _on_ring(mask, p, sign, rho, phi)
     # Wheel above the equivalent line (y down); without contact the whole ring is wheel.
@@ -180,7 +183,7 @@ def _segment(
     height, width = mask.shape
     dt = mask.dtype
     r, k = p[2], p[3]
-    rho = r - jnp.maximum(2.0, 0.04 * r)
+    rho = r - jnp.maximum(RING_INSET_PX, RING_INSET * r)
     norm = jnp.sqrt(1.0 + k * k)
     d0 = p[4] / norm  # the line's distance below O along its downward normal
     n, t = jnp.stack([-k, 1.0]) / norm, jnp.stack([1.0, k]) / norm
