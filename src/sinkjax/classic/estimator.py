@@ -151,7 +151,7 @@ def estimate_classic(
     Never raises for bad image content. The classic method has no uncertainty: the ``*_std_*``
     fields stay None. A result whose own outputs are implausible (:mod:`sinkjax.classic.plausible`:
     a boundary above O or short of the rim, a binary region that disagrees with the rim circle
-    and soil line, a soil surface that does not go on beyond the rim; with
+    and soil line, a soil surface that goes on beyond the rim at neither end; with
     ``recording_radius_px``, the recording's rim radius, also a rim far from it) keeps its
     numbers under status ``implausible`` with the reason. Every frame that reaches step 2 says
     it was segmented by ``"hue+saturation"`` (``segmenter_features``), whatever its status.

@@ -101,8 +101,8 @@ def soil_ends_beyond_rim(
     b_uv: np.ndarray,
     sign: float,
 ) -> bool:
-    """True when the soil surface does not go on beyond the rim at either end (module
-    docstring): the boundary is an edge on the wheel, not the soil surface.
+    """True when the soil surface goes on beyond the rim at neither end (module docstring):
+    the boundary is an edge on the wheel, not the soil surface.
 
     ``image`` (H, W, 3) uint8 RGB; ``centre_px`` the rim centre, ``r`` its radius (px); ``k`` the
     equivalent line's slope in the wheel frame (v = k u + b, y down, u along travel); A and B
