@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from ..soft.checks import (
@@ -84,12 +83,19 @@ def implausibility(
 
 def _patch_rgb(image: np.ndarray, x: float, y: float) -> np.ndarray:
     # Mean colour (RGB in [0, 1]) of a 5 x 5 px neighbourhood sampled every 2 px, bilinear with
-    # the edge replicated: texture averages out.
-    offsets = np.asarray([-2.0, 0.0, 2.0], np.float32)
-    xs = np.repeat(x + offsets, 3).reshape(1, 9).astype(np.float32)
-    ys = np.tile(y + offsets, 3).reshape(1, 9).astype(np.float32)
-    samples = cv2.remap(image, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return samples.reshape(9, 3).mean(axis=0)
+    # the edge replicated (as the soft method's map_coordinates): texture averages out. Only
+    # the 9 samples' 4 neighbours are read, not the whole frame converted.
+    height, width = image.shape[:2]
+    offsets = np.asarray([-2.0, 0.0, 2.0])
+    xs = np.clip(np.repeat(x + offsets, 3), 0.0, width - 1.0)
+    ys = np.clip(np.tile(y + offsets, 3), 0.0, height - 1.0)
+    x0 = np.minimum(np.floor(xs).astype(int), width - 2)
+    y0 = np.minimum(np.floor(ys).astype(int), height - 2)
+    fx, fy = (xs - x0)[:, None], (ys - y0)[:, None]
+    px = lambda dy, dx: image[y0 + dy, x0 + dx].astype(np.float64)
+    top = px(0, 0) * (1 - fx) + px(0, 1) * fx
+    bottom = px(1, 0) * (1 - fx) + px(1, 1) * fx
+    return (top * (1 - fy) + bottom * fy).mean(axis=0) / 255.0
 
 
 def soil_ends_beyond_rim(
@@ -109,8 +115,7 @@ def soil_ends_beyond_rim(
     (``a_uv``, ``b_uv``) the boundary's ends on the rim; ``sign`` the travel sign (+1 right).
     A probe outside the image counts as soil (no evidence against the frame).
     """
-    rgb = np.ascontiguousarray(image, dtype=np.float32) / 255.0
-    height, width = rgb.shape[:2]
+    height, width = image.shape[:2]
     cx, cy = centre_px
     norm = math.hypot(1.0, k)
     n = np.asarray([-k, 1.0]) / norm  # down, across the line
@@ -127,7 +132,7 @@ def soil_ends_beyond_rim(
         xy = [(cx + sign * q[0], cy + q[1]) for q in probes]
         if not all(2 <= x <= width - 3 and 2 <= y <= height - 3 for x, y in xy):
             return False
-        c_in, c_out, c_low, c_up = (_patch_rgb(rgb, x, y) for x, y in xy)
+        c_in, c_out, c_low, c_up = (_patch_rgb(image, x, y) for x, y in xy)
         for c in (c_out, c_low):
             if np.sum((c - c_in) ** 2) <= PROBE_NEARER * np.sum((c - c_up) ** 2) + PROBE_MIN_RGB**2:
                 return False  # this end's surface goes on as soil
