@@ -319,12 +319,14 @@ def report(res: dict, seconds: float) -> str:
         "sizes it is given (each size prefers one worker); starting the cluster costs seconds. "
         "It is built for many and long recordings on more cores or a cluster; the CSVs are "
         "byte-identical either way.",
-        "- Per frame, the default segmenter (its soil/background veto sorts two strips of "
-        "the image for their median colours, and its colour switch converts the whole image to "
-        "HSI a second time, outside the branch that does it for the band), the outline (mask "
-        "gradient, non-maximum suppression, up to three sub-pixel edge profiles on the colour) "
-        "and the Levenberg-Marquardt fit dominate. Sharing the HSI between switch and band, "
-        "sampling the strips, and working only in a band around the rim are the next steps.",
+        "- Per frame, the default segmenter (its soil/background veto blurs the image, takes "
+        "every pixel's chromaticity, the median colours of two strips and two nearest-mean "
+        "comparisons over the whole image; the colour switch's row is timed alone, with the HSI "
+        "conversion that the segmenter shares with the band), the outline (mask gradient, "
+        "non-maximum suppression, up to three sub-pixel edge profiles on the colour) and the "
+        "Levenberg-Marquardt fit (a few tens of steps over the outline's fixed number of "
+        "slots) dominate. Working only in a band around the recording's rim (a crop of a "
+        "static size per image size) and fewer residual slots in the fit are the next steps.",
     ]
     return "\n".join(lines) + "\n"
 

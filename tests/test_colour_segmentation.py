@@ -14,6 +14,7 @@ from sinkjax.classic.estimator import hard_mask, rgb_to_hsi_np
 from sinkjax.rig import SegmentationParams
 from sinkjax.soft.colour import chromaticity, circular_mean_deg, rgb_to_hsi
 from sinkjax.soft.segmentation import (
+    column_median,
     confidence_means,
     paper_mask,
     reference_mask,
@@ -165,6 +166,23 @@ def _cast_scene() -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray]:
     img[wheel] = (0.25, 0.7, 0.35)
     img = np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1)
     return img, (34, 20, 12, 5), wheel
+
+
+@pytest.mark.parametrize("n", [8960, 1023, 2])
+def test_column_median_is_numpy_median_with_its_gradient(n: int) -> None:
+    # Rounded values: many ties, as in a strip of 8-bit pixels.
+    rng = np.random.default_rng(n)
+    q = np.round(rng.normal(size=(n, 2)), 1)
+    got = np.asarray(jax.jit(column_median)(jnp.asarray(q)))
+    np.testing.assert_array_equal(got, np.median(q, axis=0))
+    # The gradient is the sort-based median's: the middle one or two entries of each column.
+    g = np.asarray(jax.grad(lambda a: jnp.sum(column_median(a)))(jnp.asarray(q)))
+    g_ref = np.asarray(jax.grad(lambda a: jnp.sum(jnp.median(a, axis=0)))(jnp.asarray(q)))
+    np.testing.assert_allclose(g.sum(axis=0), [1.0, 1.0])
+    np.testing.assert_allclose(g.sum(axis=0), g_ref.sum(axis=0))
+    for c in range(2):
+        middle = np.sort(q[:, c])[[(n - 1) // 2, n // 2]]
+        assert np.all(np.isin(q[g[:, c] > 0, c], middle))
 
 
 def test_reference_veto_removes_a_cast_wall_and_keeps_the_wheel() -> None:

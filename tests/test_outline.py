@@ -13,8 +13,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.ndimage
 
-from sinkjax.soft.outline import _compact, default_capacity, extract_outline, refine_outline
+from sinkjax.soft.outline import (
+    _bilinear_rgb,
+    _compact,
+    default_capacity,
+    extract_outline,
+    refine_outline,
+)
 from sinkjax.soft.settings import SoftSettings
 
 SETTINGS = SoftSettings()
@@ -59,6 +66,24 @@ def test_compact_is_nonzero_with_size() -> None:
         ref = jnp.nonzero(flags, size=size, fill_value=0)[0]
         np.testing.assert_array_equal(np.asarray(idx), np.asarray(ref))
         assert int(count) == int(np.sum(np.asarray(flags)))
+
+
+def test_bilinear_rgb_is_scipy_map_coordinates() -> None:
+    # Points inside, on the last row/column and beyond every side (clamped: mode "nearest").
+    rng = np.random.default_rng(3)
+    image = rng.uniform(size=(23, 31, 3))
+    y = rng.uniform(-3.0, 26.0, size=(40, 7))
+    x = rng.uniform(-3.0, 34.0, size=(40, 7))
+    y[0, :3], x[0, :3] = [22.0, 0.0, 22.0], [30.0, 30.0, 0.0]  # exactly on the last row/column
+    got = np.asarray(jax.jit(_bilinear_rgb)(jnp.asarray(image), jnp.asarray(y), jnp.asarray(x)))
+    ref = np.stack(
+        [
+            scipy.ndimage.map_coordinates(image[..., c], [y, x], order=1, mode="nearest")
+            for c in range(3)
+        ],
+        -1,
+    )
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
 
 
 def test_disc_edge_is_subpixel_and_normals_radial() -> None:

