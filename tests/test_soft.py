@@ -7,6 +7,7 @@ import colorsys
 import csv
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,7 +20,7 @@ from sinkjax.result import FEATURES_HUE_SAT
 from sinkjax.rig import Rig, SegmentationParams, save_rig
 from sinkjax.soft.batch import estimate_batch
 from sinkjax.soft.estimator import measure
-from sinkjax.soft.fit import fit
+from sinkjax.soft.fit import fit, weighted_points
 from sinkjax.soft.model import Evidence, measurements
 from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
 from sinkjax.status import Status
@@ -196,9 +197,9 @@ def test_degenerate_frames_have_status_and_finite_gradients(case: str) -> None:
     assert np.all(np.isfinite(np.asarray(g_img)))
 
 
-def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
-    # Rim points on a circle, boundary points on a curved surface inside it: the fitted line must
-    # be exactly Eq. 1's least-squares line of the boundary points.
+def _clean_evidence() -> tuple[Evidence, tuple[float, float, float], tuple[float, float]]:
+    """Rim points on a circle, boundary points on a curved surface inside it; (cx, cy, r) and
+    Eq. 1's least-squares line (k, b) of the boundary points."""
     cx, cy, r = 100.0, 90.0, 60.0
     ang = np.linspace(-np.pi, 0.0, 400)  # upper half of the rim (y up = negative)
     rim_x, rim_y = cx + r * np.cos(ang), cy + r * np.sin(ang)
@@ -224,12 +225,18 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
             np.stack([ends_x, cy + float(k_ref) * (ends_x - cx) + float(b_ref)], 1)
         ),
     )  # fmt: skip
+    return ev, (cx, cy, r), (float(k_ref), float(b_ref))
+
+
+def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
+    # The fitted line must be exactly Eq. 1's least-squares line of the boundary points.
+    ev, (cx, cy, r), (k_ref, b_ref) = _clean_evidence()
     res = fit(ev)
     assert bool(res.ok)
     p = np.asarray(res.params)
     np.testing.assert_allclose(p[:3], [cx, cy, r], atol=1e-3)  # LM stops at rtol 1e-5
-    assert p[3] == pytest.approx(float(k_ref), abs=1e-5)
-    assert p[4] == pytest.approx(float(b_ref), abs=1e-3)
+    assert p[3] == pytest.approx(k_ref, abs=1e-5)
+    assert p[4] == pytest.approx(b_ref, abs=1e-3)
     # Delta method: the reported raw sigma equals sqrt(g C g) with g by finite differences.
     cov = covariance(res.params, ev)
     std = np.asarray(measurement_std(res.params, cov, None, UncertaintyModel.raw()))
@@ -248,6 +255,38 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
     np.testing.assert_allclose(
         std, np.sqrt(np.einsum("ij,jk,ik->i", g, np.asarray(cov), g)), rtol=1e-5
     )
+
+
+def test_fit_on_the_weighted_points_alone_is_the_fit_on_every_slot() -> None:
+    ev, _, _ = _clean_evidence()
+    n = ev.x_px.shape[0]
+    # Interleave 3 unweighted slots (other edges, padding) after every weighted point.
+    rng = np.random.default_rng(0)
+    order = np.argsort(np.r_[np.arange(n) * 4.0, rng.uniform(0, 4 * n, 3 * n)], kind="stable")
+    weighted = order < n
+
+    def spread(a: jax.Array, fill: np.ndarray) -> jax.Array:
+        return jnp.asarray(np.r_[np.asarray(a), fill][order])
+
+    xy_fill = rng.uniform(0, 200, 3 * n)
+    zeros = np.zeros(3 * n)
+    weights = [spread(w, zeros) for w in (ev.w_rim, ev.w_line, ev.w_a, ev.w_b)]
+    padded = eqx.tree_at(
+        lambda e: (e.x_px, e.y_px, e.w_rim, e.w_line, e.w_a, e.w_b),
+        ev,
+        (spread(ev.x_px, xy_fill), spread(ev.y_px, xy_fill[::-1]), *weights),
+    )
+    small, complete = weighted_points(padded, n + 5)
+    assert bool(complete)
+    np.testing.assert_array_equal(np.asarray(small.x_px[:n]), np.asarray(padded.x_px)[weighted])
+    assert float(jnp.sum(small.w_line)) == pytest.approx(float(jnp.sum(ev.w_line)))
+    assert float(jnp.sum(small.w_rim[n:])) == 0.0
+    full, fast = fit(padded), fit(padded, capacity=n + 5)
+    assert bool(full.ok) and bool(fast.ok)
+    np.testing.assert_allclose(np.asarray(fast.params), np.asarray(full.params), atol=1e-6)
+    assert fast.residuals.shape == full.residuals.shape
+    # More weighted points than the capacity: a failed fit, not a fit of some of them.
+    assert not bool(fit(padded, capacity=n - 1).ok)
 
 
 def test_bad_rect_rows(rendered) -> None:

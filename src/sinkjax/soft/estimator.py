@@ -20,7 +20,7 @@ from ..rig import Rig, SegmentationParams, rim_hint_range_px
 from ..status import Status
 from .adaptive import default_segmenter
 from .checks import line_shift_std, plausibility
-from .fit import build_evidence, fit
+from .fit import build_evidence, fit, rim_and_boundary_capacity
 from .hough import Circle, hough_rim
 from .model import end_point, measurements
 from .outline import Outline, extract_outline, refine_outline
@@ -136,7 +136,7 @@ def finish(
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
     sign = travel_sign(travel) if isinstance(travel, str) else travel
     ev = build_evidence(outline, choice.circle, sign, s, rim_weight=choice.prior_weight)
-    res = fit(ev)
+    res = fit(ev, capacity=rim_and_boundary_capacity(*mask.shape))
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)

@@ -124,9 +124,10 @@ MIN_SPREAD = 0.02
 
 
 def column_median(q: Float[Array, "N C"]) -> Float[Array, " C"]:
-    """Median of each column, the same values (and gradient) as ``jnp.median(q, axis=0)`` at
-    half its cost on a CPU: only the lower half is ordered (``lax.top_k``), not every value
-    (a full sort of a 640 x 14 strip takes about 1 ms there)."""
+    """Median of each column: the values of ``jnp.median(q, axis=0)``, and like it a gradient
+    on the middle one or two entries (among tied entries, perhaps another one), at half its cost
+    on a CPU: only the lower half is ordered (``lax.top_k``), not every value (a full sort of a
+    640 x 14 strip takes about 1 ms there)."""
     n = q.shape[0]
     low = -jax.lax.top_k(-q.T, n // 2 + 1)[0]  # (C, n // 2 + 1), ascending
     if n % 2:
