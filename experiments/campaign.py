@@ -116,7 +116,7 @@ def steady_and_profile(n_frames: int, repeats: int) -> dict:
     from sinkjax.app.pipeline import iter_estimates
     from sinkjax.soft.adaptive import default_segmenter
     from sinkjax.soft.colour import rgb_to_hsi
-    from sinkjax.soft.fit import build_evidence, fit
+    from sinkjax.soft.fit import build_evidence, fit, rim_and_boundary_capacity
     from sinkjax.soft.hough import hough_rim
     from sinkjax.soft.outline import extract_outline, refine_outline
     from sinkjax.soft.segmentation import confidence_means, reference_mask, soft_mask
@@ -178,7 +178,9 @@ def steady_and_profile(n_frames: int, repeats: int) -> dict:
         return soft_mask(hh, ss, h_w, s_w, seg)
 
     def fit_of(outline, circle):
-        return fit(build_evidence(outline, circle, sign, s))
+        # As the estimator calls it: the solve on the weighted points alone.
+        ev = build_evidence(outline, circle, sign, s)
+        return fit(ev, capacity=rim_and_boundary_capacity(h, w))
 
     def cov_of(outline, circle, p):
         ev = build_evidence(outline, circle, sign, s)
@@ -324,9 +326,10 @@ def report(res: dict, seconds: float) -> str:
         "comparisons over the whole image; the colour switch's row is timed alone, with the HSI "
         "conversion that the segmenter shares with the band), the outline (mask gradient, "
         "non-maximum suppression, up to three sub-pixel edge profiles on the colour) and the "
-        "Levenberg-Marquardt fit (a few tens of steps over the outline's fixed number of "
-        "slots) dominate. Working only in a band around the recording's rim (a crop of a "
-        "static size per image size) and fewer residual slots in the fit are the next steps.",
+        "Levenberg-Marquardt fit (a few tens of steps over the weighted outline points, at most "
+        "3 (H + W) slots) dominate. A rim frame (a recording's first 8) is finished twice: "
+        "with its own rim, for the recording's rim, then with that rim. Working only in a band "
+        "around the recording's rim (a crop of a static size per image size) is the next step.",
     ]
     return "\n".join(lines) + "\n"
 
