@@ -17,7 +17,7 @@ import scipy.ndimage
 
 from sinkjax.soft.outline import (
     _bilinear_rgb,
-    _compact,
+    compact,
     default_capacity,
     extract_outline,
     refine_outline,
@@ -62,7 +62,7 @@ def test_compact_is_nonzero_with_size() -> None:
     rng = np.random.default_rng(0)
     flags = jnp.asarray(rng.uniform(size=500) < 0.1)
     for size in (10, 45, 200):
-        idx, count = jax.jit(_compact, static_argnums=1)(flags, size)
+        idx, count = jax.jit(compact, static_argnums=1)(flags, size)
         ref = jnp.nonzero(flags, size=size, fill_value=0)[0]
         np.testing.assert_array_equal(np.asarray(idx), np.asarray(ref))
         assert int(count) == int(np.sum(np.asarray(flags)))

@@ -18,7 +18,7 @@ from jaxtyping import Array, Bool, Float
 from ..geometry import equivalent_line
 from .hough import Circle
 from .model import Evidence, residuals
-from .outline import Outline, _compact
+from .outline import Outline, compact
 from .settings import SoftSettings
 from .shallow import shallow_boundary
 
@@ -266,7 +266,7 @@ def weighted_points(ev: Evidence, size: int) -> tuple[Evidence, Bool[Array, ""]]
     3 (H + W) of them, half the outline's default capacity (:func:`rim_and_boundary_capacity`).
     """
     weighted = (ev.w_rim > 0) | (ev.w_line > 0) | (ev.w_a > 0) | (ev.w_b > 0)
-    idx, count = _compact(weighted, size)
+    idx, count = compact(weighted, size)
     keep = (jnp.arange(size, dtype=count.dtype) < count).astype(ev.x_px.dtype)
     weights = tuple(w[idx] * keep for w in (ev.w_rim, ev.w_line, ev.w_a, ev.w_b))
     small = eqx.tree_at(

@@ -50,7 +50,7 @@ def _shift(a: Float[Array, "H W"], dy: int, dx: int) -> Float[Array, "H W"]:
     return p[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
 
 
-def _compact(flags: Bool[Array, " N"], size: int) -> tuple[Array, Array]:
+def compact(flags: Bool[Array, " N"], size: int) -> tuple[Array, Array]:
     """Indices of the true entries (first ``size`` of them, padded with 0) and their count.
 
     ``jnp.nonzero(size=...)`` does the same; a parallel prefix sum for the output positions is
@@ -116,7 +116,7 @@ def extract_outline(
     ridge = (mag >= e_f) & (mag > e_b) & (mag > _EDGE_MIN)
     ridge = ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
 
-    flat, count = _compact(ridge.ravel(), k)
+    flat, count = compact(ridge.ravel(), k)
     valid = jnp.arange(k, dtype=count.dtype) < count
     rows = flat // width
     cols = flat % width
