@@ -10,7 +10,13 @@ import pytest
 
 from sinkjax import Status, estimate_classic, synth
 from sinkjax.rig import SegmentationParams
-from sinkjax.soft.adaptive import AdaptiveSegmenter, log_histogram, texture, valley
+from sinkjax.soft.adaptive import (
+    AdaptiveSegmenter,
+    log_histogram,
+    texture,
+    valley,
+    valley_depth,
+)
 from sinkjax.soft.segmentation import wheel_mask
 from sinkjax.soft.segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY
 from sinkjax.synth.layers import WHEEL_LAYERS, coverage
@@ -92,6 +98,18 @@ def test_valley_threshold_lies_between_the_populations() -> None:
     inside = (mid >= lo) & (mid <= hi)
     assert np.log(t) == pytest.approx(mid[inside][np.argmin(smooth[inside])], abs=1e-6)
     assert 0.12 < t < 0.16
+    # The shadow's population rises beyond the valley: numpy's smoothed counts, peak / valley.
+    span = (mid >= np.log(t) - 1e-9) & (mid <= np.log(1.3 * 0.19))
+    at = np.argmin(np.abs(mid - np.log(t)))
+    depth = float(valley_depth(hist, centres, jnp.asarray(t), jnp.asarray(1.3 * 0.19)))
+    assert depth == pytest.approx(smooth[span].max() / smooth[at], rel=1e-6)
+    assert depth > 2.0
+    # Without the shadow the wheel's own tail only falls: the emptiest bin is no valley.
+    tail = img.ravel()[:40_000].reshape(-1, 100)
+    tail = np.repeat(np.repeat(tail, 2, axis=0), 2, axis=1)
+    hist_t, centres_t = log_histogram(jnp.asarray(tail))
+    t_tail = valley(hist_t, centres_t, jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(False))
+    assert float(valley_depth(hist_t, centres_t, t_tail, jnp.asarray(1.3 * 0.19))) < 1.5
     # A metal wheel (0.8) over a background at 0.2: the valley lies between, below 0.6 x 0.8.
     bright = np.concatenate(
         [np.exp(rng.normal(np.log(0.2), 0.1, 40_000)), np.exp(rng.normal(np.log(0.8), 0.1, 20_000))]
@@ -102,16 +120,19 @@ def test_valley_threshold_lies_between_the_populations() -> None:
 
 
 @pytest.mark.parametrize(
-    ("preset", "leaf"),
+    ("preset", "leaf", "seed"),
     [
-        ("black_wheel", "p_a_int"),
-        ("black_wheel", "p_chroma"),
-        ("black_wheel", "t_int"),
-        ("metal_wheel", "p_valley"),
+        ("black_wheel", "p_a_int", 3),  # no shadow population: the paper-style threshold
+        ("black_wheel", "p_valley", 7),  # a cast shadow's population: the valley below it
+        ("black_wheel", "p_chroma", 3),
+        ("black_wheel", "t_int", 3),
+        ("metal_wheel", "p_valley", 3),
     ],
 )
-def test_gradient_of_mask_statistic_matches_finite_differences(preset: str, leaf: str) -> None:
-    _, img, rig = _scene(preset)
+def test_gradient_of_mask_statistic_matches_finite_differences(
+    preset: str, leaf: str, seed: int
+) -> None:
+    _, img, rig = _scene(preset, seed)
     x = jnp.asarray(img[::2, ::2], jnp.float64) / 255.0
     rect = tuple(v // 2 for v in rig.confidence_rect)
 

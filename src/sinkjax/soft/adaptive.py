@@ -14,11 +14,15 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
   - Intensity: the wheel is the side of a threshold on which the rectangle's mean I_w lies:
     darker than the frame for a black wheel, brighter for a metal one. For a black wheel the
     threshold is the paper-style ``p_a_int * I_w + int_floor`` (its shaded side is darker
-    still). A metal wheel under one-sided light spans a factor of three in brightness, its
-    shaded side near the background's, so no fixed fraction of I_w separates them; its
-    threshold sits in the valley of the frame's log-intensity histogram between the wheel's
-    population and the background's nearest below it, where the fewest pixels are (searched
-    between ``0.1 I_w`` and ``p_d_int * I_w``).
+    still), or the valley of the frame's log-intensity histogram between I_w and that, where
+    there is one: a cast shadow on the soil is darker than the lit soil but brighter than the
+    wheel, a population of its own that a fixed fraction of I_w would cut through (taken only
+    where the histogram rises again beyond the valley: a glow on the wheel's face is a falling
+    tail, not a population). A metal wheel under one-sided light spans a factor of three in
+    brightness, its shaded side near the background's, so no fixed fraction of I_w separates
+    them; its threshold sits in the valley of the frame's log-intensity histogram between the
+    wheel's population and the background's nearest below it, where the fewest pixels are
+    (searched between ``0.1 I_w`` and ``p_d_int * I_w``).
   - Chroma: the opponent colour (R - (G + B)/2, sqrt(3)/2 (G - B)) stays within ``p_chroma``
     times a floor of the rectangle's spread of it (brown soil, however dark, has chroma). A
     clipped pixel (a channel at the sensor's top) has lost its chroma and is not judged by it.
@@ -94,6 +98,11 @@ def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float
 
 
 _HIST_BINS = 64
+# A black wheel's threshold moves down to a valley of the histogram only where the population
+# beyond it (up to this factor past the paper-style threshold) outnumbers the valley's bin by
+# at least this much: a cast shadow on the soil, not the wheel's own glow.
+_DARK_RISE = 2.0
+_DARK_RISE_SPAN = 1.3
 _LOG_I_MIN = float(np.log(1.0 / 255.0))  # one 8-bit step: the darkest intensity binned
 
 
@@ -139,6 +148,21 @@ def valley(
     return jnp.exp(jnp.where(jnp.any(inside), middle, hi))
 
 
+def valley_depth(
+    hist: Float[Array, " B"],
+    centres: Float[Array, " B"],
+    at: Float[Array, ""],
+    top: Float[Array, ""],
+) -> Float[Array, ""]:
+    """How many times the histogram's highest bin between intensity ``at`` and ``top`` outnumbers
+    the bin at ``at``: above 1 where a population rises beyond the valley, 1 on a falling tail."""
+    log_at = jnp.log(at)
+    i = jnp.argmin(jnp.abs(centres - log_at))
+    span = (centres >= log_at) & (centres <= jnp.log(top))
+    peak = jnp.max(jnp.where(span, hist, 0.0))
+    return peak / jnp.maximum(hist[i], 1e-9)
+
+
 def wheel_chroma(
     image: Float[Array, "H W 3"], weight: Float[Array, "H W"], hs: HueSat | None = None
 ) -> Float[Array, ""]:
@@ -160,9 +184,10 @@ class AdaptiveSegmenter(Segmenter):
     intensity/chroma/texture mask for a black or metal one; no setting needed for either.
 
     ``seg``: the H/S test's parameters. The grey branch's leaves: ``p_a_int`` and ``int_floor``
-    (a black wheel's intensity threshold ``p_a_int * I_w + int_floor``), ``p_valley`` (a factor
-    on a metal wheel's threshold found in the histogram's valley; 1 by default), ``t_int`` (the
-    intensity sigmoid's width, relative), ``p_chroma`` and ``chroma_floor`` (the chroma radius is
+    (a black wheel's intensity threshold ``p_a_int * I_w + int_floor`` where no valley is
+    used), ``p_valley`` (a factor on a threshold found in the histogram's valley, a metal wheel's
+    or a black one's; 1 by default), ``t_int`` (the intensity sigmoid's width, relative),
+    ``p_chroma`` and ``chroma_floor`` (the chroma radius is
     ``p_chroma * max(rectangle chroma spread, chroma_floor)``, RGB units), ``t_chroma``,
     ``p_tex`` and ``tex_floor`` (texture limit ``p_tex * max(rectangle texture, tex_floor)``,
     intensity units), ``t_tex``. Not differentiable: ``min_wheel_chroma`` (the switch) and
@@ -216,18 +241,23 @@ class AdaptiveSegmenter(Segmenter):
         i_w = rect_mean(intensity)
         # +1: the wheel is darker than the frame on average (black), -1: brighter (metal).
         # Black: the paper-style threshold p_a_int * I_w + int_floor (its shaded side is darker
-        # still). Metal: the histogram's valley below I_w (module docstring), at most
-        # p_d_int * I_w.
+        # still), or a valley below it. Metal: the histogram's valley below I_w (module
+        # docstring), at most p_d_int * I_w.
         dark = i_w <= jnp.mean(intensity)
         side = jnp.where(dark, 1.0, -1.0)
         hist, centres = log_histogram(jax.lax.stop_gradient(intensity))
         ceiling = self.p_d_int * i_w
         found = valley(hist, centres, jnp.log(0.1 * i_w), jnp.log(ceiling), jnp.asarray(True))
-        edge = jnp.where(
-            dark,
-            self.p_a_int * i_w + self.int_floor,
-            self.p_valley * jax.lax.stop_gradient(found),
-        )
+        # A black wheel: the paper-style threshold, or lower where the histogram has a valley
+        # between I_w and it (a cast shadow on the soil, darker than lit soil but brighter than
+        # the wheel, is its own population: the threshold goes between it and the wheel).
+        paper = self.p_a_int * i_w + self.int_floor
+        found_dark = valley(hist, centres, jnp.log(i_w), jnp.log(paper), jnp.asarray(False))
+        # Only a valley with a population beyond it (a shadow); on a wheel's own bright tail (a
+        # lamp's glow on the face) the emptiest bin means nothing.
+        deep = valley_depth(hist, centres, found_dark, _DARK_RISE_SPAN * paper) >= _DARK_RISE
+        found = jnp.where(dark, found_dark, found)
+        edge = jnp.where(dark & ~deep, paper, self.p_valley * jax.lax.stop_gradient(found))
         m_int = jax.nn.sigmoid(side * (edge - intensity) / (self.t_int * edge))
 
         dq1, dq2 = q1 - rect_mean(q1), q2 - rect_mean(q2)
