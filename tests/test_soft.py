@@ -20,7 +20,7 @@ from sinkjax.result import FEATURES_HUE_SAT
 from sinkjax.rig import Rig, SegmentationParams, save_rig
 from sinkjax.soft.batch import estimate_batch
 from sinkjax.soft.estimator import measure
-from sinkjax.soft.fit import fit, weighted_points
+from sinkjax.soft.fit import end_kernel, fit, weighted_points
 from sinkjax.soft.model import Evidence, measurements
 from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
 from sinkjax.status import Status
@@ -255,6 +255,64 @@ def test_joint_fit_reproduces_eq1_on_clean_points() -> None:
     np.testing.assert_allclose(
         std, np.sqrt(np.einsum("ij,jk,ik->i", g, np.asarray(cov), g)), rtol=1e-5
     )
+
+
+def _rut_exit_angle(taper: float) -> tuple[float, float]:
+    """(fitted, exact) exit angle (deg) of a surface with a rut's edge inside the exit end's
+    window (the paper rig's proportions: r = 140 px, a 1.9 px step of width 8.4 px, 20 px from
+    B; a 28 px window, the boundary starting 4 px from the rim), the end windows weighted by
+    :func:`end_kernel` with ``taper``."""
+    cx, cy, r, depth, drop = 200.0, 190.0, 140.0, 130.4, 1.9
+    step_x = cx - np.sqrt(r * r - (depth + drop) ** 2) + 20.0
+
+    def surface(x: np.ndarray) -> np.ndarray:
+        return cy + depth + drop * 0.5 * (1.0 - np.tanh((x - step_x) / 8.4))
+
+    def crossing(lo: float, hi: float) -> float:  # bisection of the surface with the rim
+        def g(x: float) -> float:
+            return float((x - cx) ** 2 + (surface(np.asarray(x)) - cy) ** 2 - r * r)
+
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if (g(mid) < 0) == (g(lo) < 0) else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    xb, xa = crossing(cx - r, cx), crossing(cx + r, cx)
+    exact = np.degrees(np.arctan2(cx - xb, float(surface(np.asarray(xb))) - cy))
+    ang = np.linspace(-np.pi, 0.0, 400)
+    bx = np.linspace(xb + 4.0, xa - 4.0, 100)
+    by = surface(bx)
+    u, v = jnp.asarray(bx - cx), jnp.asarray(by - cy)
+    kern = [
+        np.asarray(end_kernel(jnp.hypot(u - u[i], v - v[i]), jnp.asarray(28.0), jnp.asarray(taper)))
+        for i in (-1, 0)
+    ]
+    n, zeros = len(ang), np.zeros(len(ang))
+    k0, b0 = (float(a) for a in equivalent_line(u, v))
+    ends_x = np.asarray([bx[-1], bx[0]])
+    ev = Evidence(
+        jnp.asarray(np.r_[cx + r * np.cos(ang), bx]), jnp.asarray(np.r_[cy + r * np.sin(ang), by]),
+        jnp.asarray(np.r_[np.ones(n), np.zeros(len(bx))]),
+        jnp.asarray(np.r_[zeros, np.ones(len(bx))]),
+        jnp.asarray(np.r_[zeros, kern[0]]), jnp.asarray(np.r_[zeros, kern[1]]),
+        jnp.asarray(1.0),
+        jnp.asarray([cx + 1.0, cy - 1.0, r + 1.0, k0, b0, 0.0, depth, 0.0, depth, 0.0, 0.0]),
+        end_origin_px=jnp.asarray(np.stack([ends_x, [by[-1], by[0]]], 1)),
+        end_anchor_px=jnp.asarray(np.stack([ends_x, cy + k0 * (ends_x - cx) + b0], 1)),
+    )  # fmt: skip
+    res = fit(ev)
+    assert bool(res.ok)
+    return float(np.degrees(measurements(res.params)[2])), float(exact)
+
+
+def test_tapered_end_window_follows_the_surface_at_the_rim_past_a_rut_edge() -> None:
+    # Bulldozing leaves a rut whose edge can lie inside the exit end's window: the surface is
+    # flat where it meets the rim, the window's far side slopes. Weighted alike, the window's
+    # points read that slope into the tangent at B; tapered, the points next to the rim lead.
+    tapered, exact = _rut_exit_angle(1.0)
+    uniform, _ = _rut_exit_angle(0.0)
+    assert abs(tapered - exact) < 0.25
+    assert abs(tapered - exact) < 0.75 * abs(uniform - exact)
 
 
 def test_fit_on_the_weighted_points_alone_is_the_fit_on_every_slot() -> None:

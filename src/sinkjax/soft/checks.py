@@ -318,7 +318,8 @@ def plausibility(
 
     ring = ring_disagreement(mask, p, ev.sign, contact)
     outer = outer_wheel(mask, p, ev.sign, contact)
-    clearance = ev.settings.end_clearance_px.astype(dt)
+    # The ends' points start where the boundary does, or the clearance further in if larger.
+    clearance = jnp.maximum(ev.settings.end_clearance_px.astype(dt), ev.inner_px.astype(dt))
     fails = jnp.stack(
         [
             ring > MAX_RING_DISAGREEMENT,

@@ -24,9 +24,25 @@ from .shallow import shallow_boundary
 
 
 def end_window_px(r_px: Array, settings: SoftSettings) -> Array:
-    """Length of boundary used to find each end's tangent: short enough to follow the surface."""
+    """Length of boundary used to find each end's tangent: short enough to follow the surface.
+
+    Whole pixels: the circle it scales with is found without a gradient (the Hough search), and
+    the window's taper (:func:`end_kernel`) would otherwise move with it where ``jax.grad``
+    cannot see."""
     s = settings.astype(r_px.dtype)
-    return jnp.clip(s.end_window_fraction * r_px, s.end_window_min_px, s.end_window_max_px)
+    return jnp.round(
+        jnp.clip(s.end_window_fraction * r_px, s.end_window_min_px, s.end_window_max_px)
+    )
+
+
+def end_kernel(dist_px: Array, window_px: Array, taper: Array) -> Array:
+    """Weight of a boundary point ``dist_px`` from an end in that end's window: 0 beyond the
+    window; inside it 1 - taper + taper * (1 - (d / window)^2)^2 (a biweight kernel for
+    ``taper`` 1), so that the points next to the rim decide the end's tangent and a rut's or a
+    bump's edge at the far side of the window pulls less."""
+    q = jnp.clip(dist_px / window_px, 0.0, 1.0)
+    inside = (dist_px < window_px).astype(dist_px.dtype)
+    return inside * (1.0 - taper + taper * (1.0 - q * q) ** 2)
 
 
 def _orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
@@ -196,13 +212,14 @@ def build_evidence(
     i_a = jnp.argmax(jnp.where(present, u, -jnp.inf))
     i_b = jnp.argmin(jnp.where(present, u, jnp.inf))
     win = end_window_px(circle.r_px, s)
-    near_a = jnp.hypot(u - u[i_a], v - v[i_a]) < win
-    near_b = jnp.hypot(u - u[i_b], v - v[i_b]) < win
+    dist_a = jnp.hypot(u - u[i_a], v - v[i_a])
+    near_a = end_kernel(dist_a, win, s.end_taper)
+    near_b = end_kernel(jnp.hypot(u - u[i_b], v - v[i_b]), win, s.end_taper)
     # One per point at the strongest, whatever scales the boundary's weights (a soft mask that
     # leaves some wheel below the soil edge): the ends' priors are counted in boundary points.
     w_end = w_end / jnp.maximum(jnp.max(w_end), 1e-6)
-    w_a = w_end * near_a.astype(dt)
-    w_b = w_end * near_b.astype(dt) * (~near_a).astype(dt)
+    w_a = w_end * near_a
+    w_b = w_end * near_b * (dist_a >= win).astype(dt)
 
     k0, b0 = equivalent_line(u, v, w_line)
     # An end with too few points (a very short boundary) starts from the equivalent line.

@@ -108,21 +108,21 @@ class UncertaintyModel(eqx.Module):
     ``UncertaintyModel.raw()`` turns all of it off (scale 1, no floor, Gaussian, no adjustment).
     """
 
-    scale_sinkage: float = 0.81
-    scale_theta1: float = 1.276
-    scale_theta2: float = 1.355
-    floor_sinkage_px: float = 0.046
-    floor_theta1_deg: float = 0.001
+    scale_sinkage: float = 0.836
+    scale_theta1: float = 1.022
+    scale_theta2: float = 1.124
+    floor_sinkage_px: float = 0.05
+    floor_theta1_deg: float = 0.0
     floor_theta2_deg: float = 0.0
-    dof_sinkage: float = 3.26
-    dof_theta1: float = 3.08
-    dof_theta2: float = 2.81
+    dof_sinkage: float = 3.82
+    dof_theta1: float = 2.69
+    dof_theta2: float = 3.37
     # Per quantity (z0, θ1, θ2), the factor on the t's multiplier at each of ADJUST_LEVELS.
     level_adjust: tuple[tuple[float, ...], ...] = eqx.field(
         default=(
-            (0.889, 1.031, 1.095, 1.014, 0.988, 0.972),
-            (0.98, 0.971, 0.981, 1.049, 1.066, 0.949),
-            (0.907, 0.987, 1.025, 1.06, 1.115, 0.906),
+            (0.874, 1.029, 1.083, 1.034, 1.019, 0.956),
+            (0.915, 0.982, 1.025, 1.101, 1.059, 0.911),
+            (0.898, 0.975, 1.029, 1.095, 1.109, 0.943),
         ),
         static=True,
     )
