@@ -20,7 +20,7 @@ from sinkjax.result import FEATURES_HUE_SAT
 from sinkjax.rig import Rig, SegmentationParams, save_rig
 from sinkjax.soft.batch import estimate_batch
 from sinkjax.soft.estimator import measure
-from sinkjax.soft.fit import end_kernel, fit, weighted_points
+from sinkjax.soft.fit import boundary_ends, end_kernel, fit, weighted_points
 from sinkjax.soft.model import Evidence, measurements
 from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
 from sinkjax.status import Status
@@ -284,7 +284,9 @@ def _rut_exit_angle(taper: float) -> tuple[float, float]:
     by = surface(bx)
     u, v = jnp.asarray(bx - cx), jnp.asarray(by - cy)
     kern = [
-        np.asarray(end_kernel(jnp.hypot(u - u[i], v - v[i]), jnp.asarray(28.0), jnp.asarray(taper)))
+        np.asarray(
+            end_kernel((u - u[i]) ** 2 + (v - v[i]) ** 2, jnp.asarray(28.0), jnp.asarray(taper))
+        )
         for i in (-1, 0)
     ]
     n, zeros = len(ang), np.zeros(len(ang))
@@ -388,3 +390,22 @@ def test_run_summary_says_which_features_each_recording_was_segmented_by(rendere
     with open(tmp_path / "s.csv", newline="") as f:
         cells = [row["segmenter"] for row in csv.DictReader(f)]
     assert cells == [f"{expected[p]} (2 frames)" for p in expected]
+
+
+def test_boundary_ends_skip_a_stray_edge_beyond_a_gap() -> None:
+    """The ends are the end-most points that start a stretch of boundary (half their window
+    filled): a pair of points 9 px beyond the boundary's end (a lug's corner near the rim) is
+    not B, and a contiguous boundary's ends are its plain extremes."""
+    u = np.r_[np.arange(-40.0, 41.0), -50.9, -50.1]  # the boundary, one point a pixel; a pair
+    present = jnp.asarray(np.r_[np.ones(81, bool), True, True])
+    order = np.random.default_rng(0).permutation(u.size)  # outline order is arbitrary
+    i_a, i_b = boundary_ends(jnp.asarray(u[order]), present[order], jnp.asarray(12.0))
+    assert u[order][int(i_a)] == 40.0 and u[order][int(i_b)] == -40.0
+    # Without the pair, or with the pair 2 px from the boundary (a stretch): plain extremes.
+    near = np.r_[np.arange(-40.0, 41.0), -42.0, -43.0]
+    i_a, i_b = boundary_ends(jnp.asarray(near), present, jnp.asarray(12.0))
+    assert near[int(i_a)] == 40.0 and near[int(i_b)] == -43.0
+    # Not a present point: never an end. A boundary shorter than half a window: the extremes.
+    absent = present.at[81].set(False).at[82].set(False)
+    short = boundary_ends(jnp.asarray(u), absent.at[:75].set(False), jnp.asarray(40.0))
+    assert (u[int(short[0])], u[int(short[1])]) == (40.0, 35.0)
