@@ -17,6 +17,7 @@ import kornia
 import torch
 from torch import Tensor, nn
 
+from ..learn.train import MAX_HALVINGS, MAX_RISE
 from ..status import Status
 from .bridge import measure_torch
 from .segmentation import _check_images, _valid_rect
@@ -104,16 +105,35 @@ def train_torch(
 ) -> list[float]:
     """Adam on :func:`label_loss` of the JAX fit of ``segmenter(images)``; returns the loss
     before each step. ``images`` (B, 3, H, W) of one rig; ``targets`` (B, 3) (z0 mm, theta1,
-    theta2 deg; NaN = not labelled)."""
+    theta2 deg; NaN = not labelled).
+
+    As :func:`sinkjax.learn.train`: a step that raises the loss by more than ``MAX_RISE`` is
+    halved, up to ``MAX_HALVINGS`` times, else not taken. The loss is piecewise smooth: a frame
+    whose fit stops passing the plausibility checks jumps from its error to that of measuring
+    zeros, and a fixed-size Adam step can cross such an edge."""
     opt = torch.optim.Adam(segmenter.parameters(), lr=lr)
-    losses = []
-    for _ in range(steps):
-        opt.zero_grad()
+    params = [p for p in segmenter.parameters() if p.requires_grad]
+
+    def loss_now() -> Tensor:
         est = measure_torch(
             images, segmenter(images), travel=travel, wheel_radius_mm=wheel_radius_mm
         )
-        loss = label_loss(est.values, est.status, targets)
+        return label_loss(est.values, est.status, targets)
+
+    losses = []
+    for _ in range(steps):
+        opt.zero_grad()
+        loss = loss_now()
         loss.backward()
+        before = [p.detach().clone() for p in params]
         opt.step()
+        step = [p.detach() - b for p, b in zip(params, before, strict=True)]
+        with torch.no_grad():
+            for halvings in range(MAX_HALVINGS + 2):
+                factor = 0.5**halvings if halvings <= MAX_HALVINGS else 0.0
+                for p, b, d in zip(params, before, step, strict=True):
+                    p.copy_(b + factor * d)
+                if factor == 0.0 or float(loss_now()) <= float(loss) * (1.0 + MAX_RISE):
+                    break
         losses.append(float(loss))
     return losses
