@@ -14,7 +14,12 @@ from sinkjax.classic.estimator import estimate_classic, recording_radius_px
 from sinkjax.classic.plausible import implausibility, ring_disagreement, soil_ends_beyond_rim
 from sinkjax.result import FrameResult
 from sinkjax.rig import Rig
-from sinkjax.soft.checks import TESTS, message
+from sinkjax.soft.checks import (
+    MAX_HALF_RING_DISAGREEMENT,
+    TESTS,
+    message,
+    ring_disagreement as ring_disagreement_soft,
+)
 from sinkjax.soft.estimator import measure_from_mask
 from sinkjax.soft.rim import RecordingRim
 from sinkjax.soft.segmentation import wheel_mask
@@ -23,7 +28,7 @@ from sinkjax.status import Status
 _measure = jax.jit(measure_from_mask, static_argnames=("travel", "wheel_radius_mm"))
 
 
-def test_soft_checks_pass_a_clean_frame_and_flag_a_mask_that_lost_part_of_the_rim() -> None:
+def test_soft_checks_pass_a_clean_frame_and_flag_a_mask_that_lost_part_of_the_lower_rim() -> None:
     rng = np.random.default_rng(4)
     scenes = S.recording_scenes(rng, 1, preset="clean", width=200, height=150)
     img, truth = S.render(scenes[0], seed=1)
@@ -33,12 +38,29 @@ def test_soft_checks_pass_a_clean_frame_and_flag_a_mask_that_lost_part_of_the_ri
     good = _measure(image, mask, wheel_radius_mm=rig.wheel_radius_mm)
     assert int(good.check) == 0 and Status.from_code(int(good.status)) == Status.OK
     assert abs(float(good.sinkage_mm) - truth.sinkage_mm) < 0.1 * truth.sinkage_mm + 1.0
-    # Erase a 70-degree wedge of the upper wheel from the mask: the ring just inside the fitted
-    # rim no longer agrees with "wheel above the soil line" over a fifth of its length.
     yy, xx = np.mgrid[0:150, 0:200]
     ang = np.degrees(np.arctan2(yy - scenes[0].centre_y_px, xx - scenes[0].centre_x_px))
-    wedge = (ang > -150) & (ang < -80)
-    bad = _measure(image, jnp.where(jnp.asarray(wedge), 0.0, mask), wheel_radius_mm=140.0)
+    sign = jnp.asarray(1.0)  # travel right
+    held = lambda m: float(ring_disagreement_soft(m, good.params, sign, jnp.asarray(True)))
+    assert held(mask) < 0.05
+    # Erase a 45-degree wedge of the lower wheel above the soil line (the fitted rim meets the
+    # soil 48 degrees below the horizontal; y down, so the lower left is 90-180 degrees): with
+    # the fitted model held, the ring just inside the rim disagrees over 45 of its 180 degrees,
+    # more than the test allows.
+    wedge = (ang > 135) & (ang <= 180)
+    share = held(jnp.where(jnp.asarray(wedge), 0.0, mask))
+    assert share == pytest.approx(45.0 / 180.0, abs=0.02)
+    assert share > MAX_HALF_RING_DISAGREEMENT
+    # The upper half is not tested: a 70-degree wedge of the upper wheel (a lamp's glow that
+    # no colour test calls wheel) moves no number; the frame stays ok and measures as before.
+    glow = jnp.where(jnp.asarray((ang > -150) & (ang < -80)), 0.0, mask)
+    assert held(glow) < 0.05
+    lit = _measure(image, glow, wheel_radius_mm=140.0)
+    assert Status.from_code(int(lit.status)) == Status.OK
+    assert float(lit.sinkage_mm) == pytest.approx(float(good.sinkage_mm), abs=0.05)
+    # The whole lower wheel lost (a mask that took it for soil): flagged, never ok.
+    gone = jnp.where(jnp.asarray(ang > 0), 0.0, mask)
+    bad = _measure(image, gone, wheel_radius_mm=140.0)
     assert Status.from_code(int(bad.status)) in (Status.IMPLAUSIBLE, Status.NO_WHEEL)
     if Status.from_code(int(bad.status)) == Status.IMPLAUSIBLE:
         assert int(bad.check) >= 1 and message(int(bad.check)).startswith(TESTS[int(bad.check) - 1])

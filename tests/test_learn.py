@@ -70,6 +70,12 @@ def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> N
     assert np.all(np.asarray(seen[:, 3]) == Status.OK.code)  # every frame measures
     assert float(value) > 0
     params = eqx.filter(as64, eqx.is_array)
+    # The implicit gradient is exact at the optimum; the solve stops within its tolerance
+    # (1e-4), which leaves an absolute error of about 1e-4 of the gradient's size in every
+    # direction (measured: 2e-3 on directional derivatives of 2-13 and on one of 0.1 alike).
+    # A random direction nearly orthogonal to the gradient has no relative accuracy to give, so
+    # each direction is held to 0.5 % of its own derivative or 0.1 % of the gradient's norm.
+    g_norm = float(jnp.sqrt(sum(jnp.sum(g * g) for g in jax.tree_util.tree_leaves(grad))))
     rng = np.random.default_rng(0)
     for _ in range(3):
         d = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(size=p.shape)), params)
@@ -80,7 +86,7 @@ def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> N
             )
         )
         fd = _directional(as64, batch, d, 1e-6)
-        np.testing.assert_allclose(ad, fd, rtol=5e-3, atol=1e-6 * abs(fd) + 1e-8)
+        np.testing.assert_allclose(ad, fd, rtol=5e-3, atol=1e-3 * g_norm + 1e-8)
 
 
 def test_save_load_round_trip(tmp_path: Path) -> None:
@@ -141,12 +147,13 @@ def test_bad_segmenter_files_give_clear_errors(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_training_a_few_steps_lowers_the_loss(started) -> None:
     batches = L.frame_batches([recording()])
-    # A good model with its mask shrunk (logits - 1.5): one frame fails, the others read deep
-    # (loss about 10). With logits - 2, the rim's three edge profiles make two of the three fail,
-    # and 24 steps take the loss only from 10.0 to 5.5 (best at step 3): the trainer's
-    # backtracking refuses most steps once a frame sits at the ring check's cliff.
+    # A good model with its mask shrunk (logits - 1.75): two frames fail, the third reads deep
+    # (loss about 11). (Logits - 1.5 now leaves all three measuring, 78 % too deep: the ring
+    # check looks at the lower half of the rim only.) With logits - 2, 12 steps take the loss
+    # only from 10.9 to 5.4 (best at step 3): the trainer's backtracking refuses most steps
+    # once a frame sits at the ring check's cliff.
     good = started("mlp")
-    seg = eqx.tree_at(lambda s: s.biases[-1], good, good.biases[-1] - 1.5)
+    seg = eqx.tree_at(lambda s: s.biases[-1], good, good.biases[-1] - 1.75)
     res = L.train(seg, batches, steps=12, learning_rate=1e-3, eval_every=3, patience=4)
     assert res.train_after.loss < 0.5 * res.train_before.loss
     assert res.train_after.failed < res.train_before.failed

@@ -26,7 +26,7 @@ from jaxtyping import Array, Float
 
 from ..calibration.loss import boundary_contrast, mask_frame_loss
 from ..soft.adaptive import default_segmenter
-from ..soft.checks import MAX_RING_DISAGREEMENT, ring_disagreement
+from ..soft.checks import MAX_HALF_RING_DISAGREEMENT, ring_disagreement
 from ..status import Status
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter
@@ -83,7 +83,7 @@ def _frame(
     ring = ring_disagreement(
         mask, jnp.concatenate([circle, seen.line]), batch.travel_sign, jnp.asarray(True)
     )
-    margin = jax.nn.relu(ring / MAX_RING_DISAGREEMENT - 0.5)
+    margin = jax.nn.relu(ring / MAX_HALF_RING_DISAGREEMENT - 0.5)
     loss = loss + jnp.where(usable, ring_weight * margin, 0.0)
     return loss + pixel, jnp.concatenate([seen.values, seen.status[None].astype(loss.dtype)])
 

@@ -10,6 +10,7 @@ paper's band).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -90,6 +91,25 @@ def paper_mask(
     return soft_mask(h, s, h_w, s_w, seg)
 
 
+# The soft method's band beside its veto: the paper's band widened by this factor (the hue
+# limits' offsets from H_w, H_w + BAND_WIDEN (P - 1) 180 deg, and the saturation's top,
+# BAND_WIDEN P_a S_w: saturation is a ratio scale). The saturation's floor, which keeps the grey
+# axis out (grey soil, shadows, speculars, the hub: not all of them are a reference's colour),
+# stays the paper's.
+BAND_WIDEN = 2.0
+
+
+def widened(seg: SegmentationParams) -> SegmentationParams:
+    """``seg`` with the H/S band widened as the soft method uses it beside its veto
+    (:data:`BAND_WIDEN`): the same leaves, so gradients reach ``seg``'s P_a/P_d."""
+    hue = lambda p: 1.0 + BAND_WIDEN * (p - 1.0)
+    return eqx.tree_at(
+        lambda q: (q.p_d_hue, q.p_a_hue, q.p_a_sat),
+        seg,
+        (hue(seg.p_d_hue), hue(seg.p_a_hue), BAND_WIDEN * seg.p_a_sat),
+    )
+
+
 def wheel_mask(
     image: Float[Array, "H W 3"],
     seg: SegmentationParams,
@@ -98,16 +118,22 @@ def wheel_mask(
     reference: bool = True,
     hs: HueSat | None = None,
 ) -> Float[Array, "H W"]:
-    """Image in [0, 1] -> soft wheel mask: the paper's H/S band (:func:`paper_mask`) with the
-    pixels that are clearly soil or background vetoed (:func:`reference_mask`).
+    """Image in [0, 1] -> soft wheel mask: an H/S band (:func:`paper_mask`) with the pixels
+    that are clearly soil or background vetoed (:func:`reference_mask`).
 
-    ``reference`` False: the paper's band alone. The band still sets the edges on ordinary
-    footage (the veto only removes pixels much nearer another reference than the wheel's); the
-    veto is what removes a background that a colour cast has made wheel-coloured. ``hs``: as in
+    The veto compares each pixel with the soil's and the background's own colours in this
+    frame, so the band beside it need not separate the wheel from them too: it is the paper's
+    widened (:func:`widened`). The paper's tight band cuts away what is still wheel on hard
+    footage: the hue that soil-coloured dust or a colour cast pulls from H_w, the saturation
+    that a confidence rectangle in a lamp's glow understates (the shaded face is more saturated
+    than S_w). ``reference`` False: the paper's band alone, as the paper has it. ``hs``: as in
     :func:`paper_mask`.
     """
-    mask = paper_mask(image, seg, rect, hs)
-    return mask * reference_mask(image, rect, seg.veto_fraction) if reference else mask
+    if not reference:
+        return paper_mask(image, seg, rect, hs)
+    return paper_mask(image, widened(seg), rect, hs) * reference_mask(
+        image, rect, seg.veto_fraction
+    )
 
 
 # Rows at the top and bottom of the image (fraction of its height) whose median colours are the
