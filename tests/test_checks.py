@@ -16,11 +16,15 @@ from sinkjax.result import FrameResult
 from sinkjax.rig import Rig
 from sinkjax.soft.checks import (
     MAX_HALF_RING_DISAGREEMENT,
+    MAX_OUTER_WHEEL,
+    NEAR_OUTER_RING,
     TESTS,
     message,
+    outer_wheel,
     ring_disagreement as ring_disagreement_soft,
 )
 from sinkjax.soft.estimator import measure_from_mask
+from sinkjax.soft.model import N_PARAMS
 from sinkjax.soft.rim import RecordingRim
 from sinkjax.soft.segmentation import wheel_mask
 from sinkjax.status import Status
@@ -91,6 +95,31 @@ def test_a_cast_shadow_taken_for_wheel_is_flagged_not_read_as_no_contact() -> No
     assert Status.from_code(int(bad.status)) == Status.IMPLAUSIBLE
     assert int(bad.check) == len(TESTS)
     assert message(int(bad.check)).startswith("the wheel mask reaches into the soil")
+
+
+def test_outer_wheel_is_the_masks_excess_below_over_the_wheels_own_lugs() -> None:
+    # A binary wheel of radius r with 24 lugs of 6 degrees (40 % of the circumference) reaching
+    # 1.15 r, no soil. On the ring at NEAR_OUTER_RING * r the lugs are wheel all round: the lower
+    # half's mean is their share, the upper half's the same, the excess 0. A shadow below the
+    # rim that the mask calls wheel out to 1.12 r (short of the 1.2 r ring) covers the lower half
+    # of that ring: the excess is then 1 - 0.4.
+    height, width, cx, cy, r = 200, 240, 120.0, 80.0, 50.0
+    yy, xx = np.mgrid[0:height, 0:width].astype(float)
+    rad = np.hypot(xx - cx, yy - cy)
+    ang = np.degrees(np.arctan2(yy - cy, xx - cx)) % 15.0
+    wheel = (rad <= r) | ((rad <= 1.15 * r) & (ang >= 4.5) & (ang < 10.5))
+    p = jnp.zeros(N_PARAMS).at[:5].set(jnp.asarray([cx, cy, r, 0.0, 2.0 * r]))
+    sign, no_contact = jnp.asarray(1.0), jnp.asarray(False)
+    plain = float(outer_wheel(jnp.asarray(wheel, jnp.float64), p, sign, no_contact))
+    assert plain == pytest.approx(0.0, abs=0.03)
+    ring = np.radians(np.linspace(0.0, 180.0, 721))
+    x = np.round(cx + NEAR_OUTER_RING * r * np.cos(ring)).astype(int)
+    y = np.round(cy + NEAR_OUTER_RING * r * np.sin(ring)).astype(int)
+    assert wheel[y, x].mean() == pytest.approx(0.4, abs=0.03)  # the lugs' share, not 0
+    shadow = (yy > cy) & (((xx - cx) / (1.1 * r)) ** 2 + ((yy - cy) / (1.12 * r)) ** 2 < 1.0)
+    shaded = float(outer_wheel(jnp.asarray(wheel | shadow, jnp.float64), p, sign, no_contact))
+    assert shaded == pytest.approx(0.6, abs=0.03)
+    assert shaded > MAX_OUTER_WHEEL
 
 
 def test_classic_implausibility() -> None:

@@ -17,8 +17,13 @@ weighs the model against its own inputs, with no threshold taken from the render
   radius (beyond lugs of up to a fifth of the radius), below the equivalent line's extension
   (all of the half ring without contact), only soil can be. A mask that is wheel there took a
   cast shadow or the soil itself for wheel, and the boundary it implies (or its absence: "no
-  contact") is that mistake's. Over more than a tenth of those samples, the frame fails. Above
-  the line the background may take the wheel's colour (a colour cast) without harm.
+  contact") is that mistake's. Over more than a tenth of those samples, the frame fails. A
+  shadow that ends short of that ring is seen on a nearer one, at 1.08 times the radius (clear
+  of the rim's edge zone): there the wheel's own lugs are wheel too, so the mask's mean on the
+  lower half counts only by its excess over its mean on the upper half, the lugs' share (a
+  wheel's lugs go all round it; a shadow on the soil, or dark soil taken for wheel, lies only
+  below). Above the line the background may take the wheel's colour (a colour cast) without
+  harm.
 - **residuals vs the outline's own noise**: the rim points' residual variance against the
   variance of the boundary points around the two short end tangents (the same mask's edge noise,
   measured where the model is a straight line over a few pixels). Their ratio, an F statistic,
@@ -125,6 +130,7 @@ PROBE_INSIDE, PROBE_OUTSIDE, PROBE_DROP = 0.1, 0.15, 0.03
 PROBE_BELOW_PX, PROBE_ABOVE_PX = 4.0, 6.0
 PROBE_NEARER, PROBE_MIN_RGB = 4.0, 0.05
 OUTER_RING = 1.2  # x the rim radius: beyond lugs of up to 0.2 r
+NEAR_OUTER_RING = 1.08  # x the rim radius: clear of the rim's edge zone, not of the lugs
 MAX_OUTER_WHEEL = 0.1
 MAX_ABOVE_CENTRE = 0.05
 END_GAP_FRACTION = 0.1
@@ -173,13 +179,20 @@ def ring_disagreement(
 def outer_wheel(
     mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
 ) -> Array:
-    """Mean of the mask, in [0, 1], on the lower half of a ring at ``OUTER_RING`` times the rim
-    radius (the part inside the image), below the equivalent line's extension where there is
-    contact: what the mask calls wheel where only soil can be. Differentiable w.r.t. ``mask``;
-    the check fails above ``MAX_OUTER_WHEEL``."""
+    """What the mask calls wheel where only soil can be, in [0, 1]: the larger of (1) its mean
+    on the lower half of a ring at ``OUTER_RING`` times the rim radius (the part inside the
+    image), below the equivalent line's extension where there is contact, and (2) its excess
+    there, on a ring at ``NEAR_OUTER_RING`` times the radius, over its mean on the upper half of
+    that ring: the wheel's own lugs reach that far all round, a shadow on the soil or dark soil
+    taken for wheel only below. Differentiable w.r.t. ``mask``; the check fails above
+    ``MAX_OUTER_WHEEL``."""
     phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=mask.dtype)  # y down: lower half
     m, seen, u, v = _on_ring(mask, p, sign, OUTER_RING * p[2], phi)
-    return _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
+    far = _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
+    m, seen, u, v = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi)
+    low = _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
+    m_up, seen_up, _, _ = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi + jnp.pi)
+    return jnp.maximum(far, low - _mean_where(m_up, seen_up))
 
 
 def _segment(
