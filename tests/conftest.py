@@ -40,10 +40,11 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 
 import fcntl  # noqa: E402
 import functools  # noqa: E402
+import gc  # noqa: E402
 import math  # noqa: E402
 import shutil  # noqa: E402
 import tempfile  # noqa: E402
-from collections.abc import Callable  # noqa: E402
+from collections.abc import Callable, Iterator  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, NamedTuple  # noqa: E402
 
@@ -120,6 +121,36 @@ def _line_truth(
     t1 = math.pi / 2 - math.atan((k * ua + b) / ua)
     t2 = math.pi / 2 + math.atan((k * ub + b) / ub)
     return r - d, math.degrees(t1), math.degrees(t2)
+
+
+# Every compiled function keeps its machine code in memory maps of its own (three per kernel
+# on a CPU), and a test process compiles thousands: a worker of `make test` reached 27 000 maps
+# in 8 minutes, and once the kernel's vm.max_map_count (65 530 by default) is reached the next
+# compile cannot map its code (LLVM "Cannot allocate memory", or a segmentation fault while the
+# compilation cache serialises an executable). After each test file, a process past a third of
+# that limit drops JAX's compiled functions (later files load theirs from the session's
+# compilation cache above).
+_MAP_SHARE = 3
+
+
+def _map_counts() -> tuple[int, int] | None:
+    """(memory maps of this process, the kernel's limit), or None where /proc cannot say."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            used = sum(1 for _ in maps)
+        with open("/proc/sys/vm/max_map_count") as limit:
+            return used, int(limit.read())
+    except (OSError, ValueError):
+        return None
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code() -> Iterator[None]:
+    yield
+    counts = _map_counts()
+    if counts is not None and counts[0] * _MAP_SHARE > counts[1]:
+        jax.clear_caches()
+        gc.collect()
 
 
 @pytest.fixture(scope="session")

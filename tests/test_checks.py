@@ -102,7 +102,7 @@ def test_outer_wheel_is_the_masks_excess_below_over_the_wheels_own_lugs() -> Non
     # 1.15 r, no soil. On the ring at NEAR_OUTER_RING * r the lugs are wheel all round: the lower
     # half's mean is their share, the upper half's the same, the excess 0. A shadow below the
     # rim that the mask calls wheel out to 1.12 r (short of the 1.2 r ring) covers the lower half
-    # of that ring: the excess is then 1 - 0.4.
+    # of that ring: the excess is then 1 - 0.4 (a frame read as no contact).
     height, width, cx, cy, r = 200, 240, 120.0, 80.0, 50.0
     yy, xx = np.mgrid[0:height, 0:width].astype(float)
     rad = np.hypot(xx - cx, yy - cy)
@@ -120,6 +120,10 @@ def test_outer_wheel_is_the_masks_excess_below_over_the_wheels_own_lugs() -> Non
     shaded = float(outer_wheel(jnp.asarray(wheel | shadow, jnp.float64), p, sign, no_contact))
     assert shaded == pytest.approx(0.6, abs=0.03)
     assert shaded > MAX_OUTER_WHEEL
+    # With contact (a soil line 0.5 r below O) only the 1.2 r ring counts: the soil line has
+    # parted wheel from soil, and this shadow does not reach that far.
+    line, contact = p.at[4].set(0.5 * r), jnp.asarray(True)
+    assert float(outer_wheel(jnp.asarray(wheel | shadow, jnp.float64), line, sign, contact)) < 0.01
 
 
 def test_classic_implausibility() -> None:

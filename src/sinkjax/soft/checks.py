@@ -18,12 +18,13 @@ weighs the model against its own inputs, with no threshold taken from the render
   (all of the half ring without contact), only soil can be. A mask that is wheel there took a
   cast shadow or the soil itself for wheel, and the boundary it implies (or its absence: "no
   contact") is that mistake's. Over more than a tenth of those samples, the frame fails. A
-  shadow that ends short of that ring is seen on a nearer one, at 1.08 times the radius (clear
-  of the rim's edge zone): there the wheel's own lugs are wheel too, so the mask's mean on the
-  lower half counts only by its excess over its mean on the upper half, the lugs' share (a
-  wheel's lugs go all round it; a shadow on the soil, or dark soil taken for wheel, lies only
-  below). Above the line the background may take the wheel's colour (a colour cast) without
-  harm.
+  frame read as no contact is held to a nearer ring too, at 1.08 times the radius (clear of the
+  rim's edge zone), where a shadow that ends short of 1.2 r shows: there the wheel's own lugs
+  are wheel too, so the mask's mean on the lower half counts only by its excess over its mean on
+  the upper half, the lugs' share (a wheel's lugs go all round it; a shadow on the soil, or soil
+  taken for wheel, lies only below). With contact the soil line has parted wheel from soil, and
+  a shadow beyond it moves no number. Above the line the background may take the wheel's colour
+  (a colour cast) without harm.
 - **residuals vs the outline's own noise**: the rim points' residual variance against the
   variance of the boundary points around the two short end tangents (the same mask's edge noise,
   measured where the model is a straight line over a few pixels). Their ratio, an F statistic,
@@ -179,20 +180,21 @@ def ring_disagreement(
 def outer_wheel(
     mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
 ) -> Array:
-    """What the mask calls wheel where only soil can be, in [0, 1]: the larger of (1) its mean
-    on the lower half of a ring at ``OUTER_RING`` times the rim radius (the part inside the
-    image), below the equivalent line's extension where there is contact, and (2) its excess
-    there, on a ring at ``NEAR_OUTER_RING`` times the radius, over its mean on the upper half of
-    that ring: the wheel's own lugs reach that far all round, a shadow on the soil or dark soil
-    taken for wheel only below. Differentiable w.r.t. ``mask``; the check fails above
-    ``MAX_OUTER_WHEEL``."""
+    """What the mask calls wheel where only soil can be, in [0, 1]: its mean on the lower half
+    of a ring at ``OUTER_RING`` times the rim radius (the part inside the image), below the
+    equivalent line's extension where there is contact; without contact, the larger of that and
+    the mask's excess on the lower half of a ring at ``NEAR_OUTER_RING`` times the radius over
+    its mean on the upper half of that ring (the wheel's own lugs reach that far all round, a
+    shadow on the soil or soil taken for wheel only below; with contact the soil line has
+    already parted wheel from soil, and wheel in the soil beyond it moves no number).
+    Differentiable w.r.t. ``mask``; the check fails above ``MAX_OUTER_WHEEL``."""
     phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=mask.dtype)  # y down: lower half
     m, seen, u, v = _on_ring(mask, p, sign, OUTER_RING * p[2], phi)
     far = _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
-    m, seen, u, v = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi)
-    low = _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
+    m, seen, _, _ = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi)
     m_up, seen_up, _, _ = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi + jnp.pi)
-    return jnp.maximum(far, low - _mean_where(m_up, seen_up))
+    excess = _mean_where(m, seen) - _mean_where(m_up, seen_up)
+    return jnp.where(contact, far, jnp.maximum(far, excess))
 
 
 def _segment(
