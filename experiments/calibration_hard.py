@@ -6,8 +6,9 @@ third, with the renderer's exact truth), then measure the whole recording as a u
 ``sinkjax calibrate``: one ``SoftRecording`` (the recording's rim from its first frames) with
 
 - the default thresholds,
-- the best point of a 3^4 grid over P_d/P_a for hue and saturation, chosen by the calibration
-  loss on the same 6 labelled frames (what a user does by hand),
+- the best point of a 4^4 grid over P_d/P_a for hue and saturation (:data:`HAND_GRID`, none of
+  its values on the calibration's own grid), chosen by the calibration loss on the same 6
+  labelled frames (what a user does by hand),
 - the calibrated rig (``sinkjax.calibration.calibrate``: grid start, then Adam through the fit).
 
 The numbers are over the 12 held-out frames of each recording: median relative sinkage error
@@ -28,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from calibration_vs_grid import FULL, QUICK, labelled_loss
+from calibration_vs_grid import QUICK, labelled_loss
 from common import runs
 
 from sinkjax import Rig, SegmentationParams, metrics as sm, synth as S
@@ -44,6 +45,15 @@ N_FRAMES = 18
 LABELLED = tuple(range(0, N_FRAMES, 3))  # 6 labelled frames, spread over the recording
 TARGET = {"median": 5.0, "failed": 5.0, "theta": 1.0, "coverage": 90.0}
 RIGS = ("default", "grid", "calibrated")
+# The reference grid search: 4 values of each threshold around the defaults, all off the grid
+# that calibrate() itself starts from (sinkjax.calibration.GRID), so that "never worse than a
+# grid search" is not won by searching the same points.
+HAND_GRID: dict[str, tuple[float, ...]] = {
+    "p_d_hue": (0.75, 0.85, 0.92, 0.97),
+    "p_a_hue": (1.03, 1.08, 1.15, 1.3),
+    "p_d_sat": (0.15, 0.35, 0.6, 0.8),
+    "p_a_sat": (1.3, 1.6, 2.1, 3.0),
+}
 
 
 def measure(images: list[np.ndarray], rig: Rig) -> list[dict]:
@@ -123,6 +133,9 @@ def run_recording(
         "preset": preset,
         "recording": rec,
         "grid_search_loss": grid_loss,
+        # The labelled frames measured on their own (their rim from them), as the grid search
+        # and calibrate() score them.
+        "calibrated_alone_loss": loss_of(measure(lab_i, res.rig), lab_t),
         "calibration_loss": res.loss_after,
         "grid_s": grid_s,
         "calibration_s": cal_s,
@@ -169,6 +182,7 @@ def report(data: dict) -> str:
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in data["recordings"]:
+        r.setdefault("calibrated_alone_loss", float("nan"))
         for name in RIGS:
             s = r[name]
             lines.append(
@@ -182,11 +196,28 @@ def report(data: dict) -> str:
         "failed <= 5 %": o["failed_pct"] <= TARGET["failed"],
         "median |θ| <= 1°": o["median_theta_deg"] <= TARGET["theta"],
         "±1.96σ coverage >= 90 %": o["coverage_pct"] >= TARGET["coverage"],
-        "never worse than the grid's best on the labelled frames (every recording)": all(
+        "never worse than the grid's best on the labelled frames measured on their own "
+        "(every recording)": all(
+            r["calibrated_alone_loss"] <= r["grid_search_loss"] + 1e-6 for r in data["recordings"]
+        ),
+        "never worse than the grid's best on the labelled frames within the whole recording "
+        "(every recording)": all(
             r["calibrated"]["labelled_loss"] <= r["grid"]["labelled_loss"] + 1e-6
             for r in data["recordings"]
         ),
     }
+    lines += [
+        "",
+        "Loss on the 6 labelled frames measured on their own (as the grid search and "
+        "`calibrate` score them; the table's last column measures them within the whole "
+        "recording, whose rim comes from its first frames): "
+        + "; ".join(
+            f"{r['preset']}/{r['recording']} grid {r['grid_search_loss']:.3f}, calibrated "
+            f"{r['calibrated_alone_loss']:.3f}"
+            for r in data["recordings"]
+        )
+        + ".",
+    ]
     lines += ["", "Overall (calibrated): " + ", ".join(f"{k} {g(v)}" for k, v in o.items()), ""]
     lines += [f"- {k}: {'met' if v else '**not met**'}" for k, v in met.items()]
     lines += ["", f"Calibration wall time per recording: {data['calibration_s']}."]
@@ -202,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="a 2^4 grid (smoke test)")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
-    grid = (QUICK if args.quick else FULL).grid
+    grid = QUICK.grid if args.quick else HAND_GRID
     t0 = time.perf_counter()
     recs = [
         run_recording(preset, rec, args.seed, args.steps, grid)

@@ -103,7 +103,7 @@ def _frames(
 def _calibrated_rig(
     setup: runs.Setup, labelled: list[records.Frame], rig: Any
 ) -> tuple[Any, dict[str, Any]]:
-    from sinkjax.calibration import LabelledFrames, calibrate
+    from sinkjax.calibration import GRID, LabelledFrames, calibrate
 
     frames = LabelledFrames(
         images=np.stack([f.image for f in labelled]),
@@ -113,7 +113,9 @@ def _calibrated_rig(
         names=tuple(f.name for f in labelled),
     )
     steps = setup.n(CAL_STEPS, 2)
-    res = calibrate(frames, rig, steps=steps, patience=max(2, steps // 2))
+    # --quick (a smoke test): the grid's corners only (16 points, not 81).
+    grid = {k: (v[0], v[-1]) for k, v in GRID.items()} if setup.quick else GRID
+    res = calibrate(frames, rig, steps=steps, patience=max(2, steps // 2), grid=grid)
     info = {
         "steps": len(res.losses) - 1,
         "best_step": res.best_step,

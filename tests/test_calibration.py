@@ -291,9 +291,15 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
     monkeypatch.setattr(L, "measure", measure)
     # No rim to find in the stand-in's blank frames (and no real estimator to compile).
     monkeypatch.setattr(O, "labelled_rim", lambda frames, rig, rim: RecordingRim.per_frame())
-    C.loss_and_grad.clear_cache()
+    _clear_loss_caches()
     yield state
+    _clear_loss_caches()
+
+
+def _clear_loss_caches() -> None:
+    """Drop the compiled losses: the next call traces the stand-in that is installed now."""
     C.loss_and_grad.clear_cache()
+    C.loss_value.clear_cache()
 
 
 def fake_frames(theta2: float = math.nan) -> C.LabelledFrames:
@@ -323,6 +329,26 @@ def test_loss_masks_empty_cells_and_averages_over_measured(fake_measure) -> None
     assert float(with_theta2.loss) == pytest.approx(float(expected) * 3 / 5, rel=1e-12)
 
 
+def test_loss_value_is_the_loss_without_its_gradient(fake_measure) -> None:
+    frames = fake_frames(theta2=30.0)
+    seg = SegmentationParams(p_d_sat=0.6, p_a_sat=1.6)
+    full = fake_loss(frames, seg)
+    alone = C.loss_value(
+        C.to_raw(seg),
+        jnp.asarray(frames.images),
+        jnp.asarray(frames.targets),
+        rect=(0, 0, 2, 2),
+        travel="right",
+        wheel_radius_mm=100.0,
+    )
+    # sinkage 24 vs 28 (twice), theta1 54 vs 57, theta2 32 vs 30 (twice): 5 cells.
+    expected = (2 * C.pseudo_huber(4.0) + C.pseudo_huber(3.0) + 2 * C.pseudo_huber(2.0)) / 5
+    assert float(alone.loss) == pytest.approx(float(expected), rel=1e-12)
+    assert float(alone.loss) == pytest.approx(float(full.loss), rel=1e-12)
+    np.testing.assert_array_equal(np.asarray(alone.frames.values), np.asarray(full.frames.values))
+    assert not np.any(np.asarray(alone.grad)) and np.any(np.asarray(full.grad))
+
+
 def test_failed_frames_count_as_zeros_and_keep_gradients_finite(
     fake_measure, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -338,7 +364,7 @@ def test_weak_boundary_is_penalised_with_a_gradient(fake_measure) -> None:
     fake_measure.update(boundary=2.0)
     weak = fake_loss(fake_frames())
     fake_measure.update(boundary=100.0)
-    C.loss_and_grad.clear_cache()
+    _clear_loss_caches()
     strong = fake_loss(fake_frames())
     assert float(weak.loss) > float(strong.loss)
     assert float(weak.grad[1]) < 0.0  # more P_a(H) -> more boundary weight -> lower loss
@@ -375,7 +401,7 @@ def test_failing_frames_get_a_surrogate_gradient(fake_measure, monkeypatch) -> N
     raw_now = [C.to_raw(SegmentationParams())]
     monkeypatch.setattr(L, "measure", picky)
     monkeypatch.setattr(L, "boundary_contrast", contrast)
-    C.loss_and_grad.clear_cache()
+    _clear_loss_caches()
     out = fake_loss(fake_frames())
     assert calls and np.all(np.isfinite(np.asarray(out.grad)))
     assert float(out.loss) > float((2 * C.pseudo_huber(28.0) + C.pseudo_huber(57.0)) / 3)
@@ -417,7 +443,7 @@ def test_calibrate_backs_off_when_a_step_lands_where_frames_fail(
 
     monkeypatch.setattr(L, "measure", cliff)
     monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
-    C.loss_and_grad.clear_cache()
+    _clear_loss_caches()
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=80, learning_rate=0.5, patience=80, grid=None)
     jumps = [i for i, x in enumerate(res.losses) if x > C.BACKTRACK * min(res.losses[: i + 1])]
     assert jumps, res.losses  # it did step over the cliff ...
@@ -444,13 +470,13 @@ def test_grid_start_escapes_a_plateau_and_is_never_worse_than_the_grid(
 
     monkeypatch.setattr(L, "measure", plateau)
     monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
-    C.loss_and_grad.clear_cache()
+    _clear_loss_caches()
     stuck = C.calibrate(fake_frames(), FAKE_RIG, steps=30, grid=None)
     assert stuck.loss_after == stuck.loss_before  # gradient descent alone cannot move
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=30)
     assert res.loss_after <= res.grid_best_loss < stuck.loss_after
     assert res.after.n_ok == 2 and res.loss_after < 1e-2 * res.loss_before
-    # 0.65 is the only grid value of P_d(S) that measures; Adam then finds 28 / 40 = 0.7.
+    # 0.7 is the only grid value of P_d(S) that measures, and 28 / 40 = 0.7 the optimum.
     assert res.rig.segmentation.as_dict()["p_d_sat"] == pytest.approx(0.7, abs=5e-3)
     assert "best grid point" in res.summary() and "leave-one-out" in res.summary()
 
@@ -781,15 +807,35 @@ def test_the_returned_point_is_scored_with_the_rim_it_finds_itself() -> None:
         assert rim is rims[int(raw[0])]
         return types.SimpleNamespace(loss=jnp.asarray(35.0))
 
-    chosen, (raw, out) = O._as_estimate_measures(
-        points, 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
+    chosen, measured = O._as_estimate_measures(
+        list(points), 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
     )
-    assert chosen == 1 and float(out.loss) == 0.5 and int(raw[0]) == 1
+    assert chosen == 1 and measured == {3, 0, 1}
     assert scored == [3]  # only the point whose own rim differs is scored again
+    # The lowest point measures 35 with its own rim; the grid point of 0.5 finds another rim
+    # too, and measures 0.7 with it: the start (2.0) is returned if nothing else is lower.
+    rims[1] = RecordingRim.fixed(101.0, 80.0, 60.0, 0.1)
+    scored.clear()
+    own_losses = {1: 0.7, 3: 35.0}
+
+    def loss_own(raw, rim):
+        scored.append(int(raw[0]))
+        return types.SimpleNamespace(loss=jnp.asarray(own_losses[int(raw[0])]))
+
+    rescored = list(points)
+    chosen, measured = O._as_estimate_measures(
+        rescored, 3, 3, loss_own, lambda raw: rims[int(raw[0])], held
+    )
+    # Scored lowest first: 3 (35), the start (2.0, its own rim), then grid point 1 (0.5 with the
+    # start's rim, 0.7 with its own) beats it; grid point 2 (0.9 > 0.7) is not scored.
+    assert chosen == 1 and scored == [3, 1] and float(rescored[1][1].loss) == 0.7
+    assert measured == {3, 0, 1}
+    assert float(rescored[3][1].loss) == 35.0 and float(rescored[2][1].loss) == 0.9
     # When the lowest point finds the same rim, it stays, unscored again.
     rims[3] = RecordingRim.fixed(100.0, 80.0, 60.0, 0.1)
+    rims[1] = held
     scored.clear()
-    chosen, (_, out) = O._as_estimate_measures(
-        points, 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
+    chosen, _ = O._as_estimate_measures(
+        list(points), 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
     )
-    assert chosen == 3 and float(out.loss) == 0.2 and scored == []
+    assert chosen == 3 and scored == []

@@ -30,6 +30,7 @@ from .loss import (
     from_raw as from_raw,
     labelled_soil_side as labelled_soil_side,
     loss_and_grad as loss_and_grad,
+    loss_value as loss_value,
     mask_frame_loss as mask_frame_loss,
     pseudo_huber as pseudo_huber,
     to_raw as to_raw,

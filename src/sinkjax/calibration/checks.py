@@ -57,10 +57,15 @@ class Checks:
     def loo_failed(self) -> int:
         return sum(not r[5] for r in self.loo)
 
-    def lines(self, grid_best_loss: float = math.nan) -> list[str]:
+    def lines(self, grid_best_loss: float = math.nan, loss_after: float = math.nan) -> list[str]:
         out = [self.convergence]
-        if math.isfinite(grid_best_loss):
-            out.append(f"best grid point's loss {grid_best_loss:.4g} (the result is never above)")
+        if math.isfinite(grid_best_loss) and not loss_after > grid_best_loss:
+            out.append(f"best grid point's loss {grid_best_loss:.4g} (the result is not above)")
+        elif math.isfinite(grid_best_loss):
+            out.append(
+                f"best grid point's loss {grid_best_loss:.4g}, with the rim the first thresholds "
+                f"find; with the rim it finds itself it measured worse than {loss_after:.4g}"
+            )
         for name, loss, others in self.disagreeing:
             out.append(
                 f"frame {name} disagrees with the others: loss {loss:.3g} per value vs a median "

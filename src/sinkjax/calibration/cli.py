@@ -40,6 +40,9 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
         "the lamp moving)",
     )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="augmentation seed (0)")
+    from ..app.cli_estimate import add_cache_option
+
+    add_cache_option(p)
 
 
 def _positive_int(text: str) -> int:
@@ -84,6 +87,10 @@ def run_cli(args: argparse.Namespace) -> int:
     rig = load_rig(rig_path)
     frames = read_labels(labels, rig)
     _check_out(out, [labels.parent / name for name in frames.names])
+    from ..app.cli_estimate import setup_compile_cache
+
+    # A second calibration of the same rig and image size loads its compiled loss from disk.
+    setup_compile_cache(args)
     n_cells = int(np.isfinite(frames.targets).sum())
     print(f"calibrating {rig_path} on {len(frames.names)} frames ({n_cells} measured values)")
     result = calibrate(

@@ -251,6 +251,42 @@ class LossAndGrad(eqx.Module):
     frames: FrameLoss
 
 
+def _frame_losses(
+    raw: Float[Array, " 7"],
+    images_u8: UInt8[Array, "N H W 3"],
+    targets: Float[Array, "N 3"],
+    key: PRNGKeyArray,
+    rim: RecordingRim | None,
+    *,
+    rect: tuple[int, int, int, int],
+    travel: str,
+    wheel_radius_mm: float,
+    use_augment: bool,
+    config: AugmentConfig,
+    with_grad: bool,
+) -> LossAndGrad:
+    dt = jnp.result_type(float)
+    images = images_u8.astype(dt) / 255.0
+    if use_augment:
+        keys = jax.random.split(key, images.shape[0])
+        images = jax.vmap(lambda im, k: augment(im, k, config))(images, keys)
+    targets = targets.astype(dt)
+    n_cells = jnp.maximum(jnp.sum(jnp.isfinite(targets)), 1).astype(dt)
+    one = functools.partial(
+        frame_loss, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim
+    )
+    if with_grad:
+        (losses, frames), grads = jax.vmap(
+            jax.value_and_grad(one, has_aux=True), in_axes=(None, 0, 0)
+        )(raw, images, targets)
+        finite = jnp.all(jnp.isfinite(grads), axis=1, keepdims=True)
+        grad = jnp.sum(jnp.where(finite, grads, 0.0), axis=0) / n_cells
+    else:
+        losses, frames = jax.vmap(one, in_axes=(None, 0, 0))(raw, images, targets)
+        grad = jnp.zeros_like(raw)
+    return LossAndGrad(loss=jnp.sum(losses) / n_cells, grad=grad, frames=frames)
+
+
 @functools.partial(
     jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm", "use_augment", "config")
 )
@@ -274,19 +310,27 @@ def loss_and_grad(
     the loss. With ``use_augment`` each frame first gets a random lighting change from ``key``.
     ``rim`` (traced; None: each frame's own) is the recording's rim every frame is measured with.
     """
-    dt = jnp.result_type(float)
-    images = images_u8.astype(dt) / 255.0
-    if use_augment:
-        keys = jax.random.split(key, images.shape[0])
-        images = jax.vmap(lambda im, k: augment(im, k, config))(images, keys)
-    targets = targets.astype(dt)
-    n_cells = jnp.maximum(jnp.sum(jnp.isfinite(targets)), 1).astype(dt)
-    one = functools.partial(
-        frame_loss, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim
-    )
-    (losses, frames), grads = jax.vmap(jax.value_and_grad(one, has_aux=True), in_axes=(None, 0, 0))(
-        raw, images, targets
-    )
-    finite = jnp.all(jnp.isfinite(grads), axis=1, keepdims=True)
-    grad = jnp.sum(jnp.where(finite, grads, 0.0), axis=0) / n_cells
-    return LossAndGrad(loss=jnp.sum(losses) / n_cells, grad=grad, frames=frames)
+    return _frame_losses(
+        raw, images_u8, targets, key, rim, rect=rect, travel=travel,
+        wheel_radius_mm=wheel_radius_mm, use_augment=use_augment, config=config, with_grad=True,
+    )  # fmt: skip
+
+
+@functools.partial(jax.jit, static_argnames=("rect", "travel", "wheel_radius_mm"))
+def loss_value(
+    raw: Float[Array, " 7"],
+    images_u8: UInt8[Array, "N H W 3"],
+    targets: Float[Array, "N 3"],
+    rim: RecordingRim | None = None,
+    *,
+    rect: tuple[int, int, int, int],
+    travel: str,
+    wheel_radius_mm: float,
+) -> LossAndGrad:
+    """:func:`loss_and_grad`'s loss and frames without the gradient (``grad`` is zeros): the
+    forward pass alone, a few times cheaper, for scoring the points of a grid."""
+    return _frame_losses(
+        raw, images_u8, targets, jax.random.key(0), rim, rect=rect, travel=travel,
+        wheel_radius_mm=wheel_radius_mm, use_augment=False, config=DEFAULT_CONFIG,
+        with_grad=False,
+    )  # fmt: skip
