@@ -63,8 +63,8 @@ class Checks:
             out.append(f"best grid point's loss {grid_best_loss:.4g} (the result is not above)")
         elif math.isfinite(grid_best_loss):
             out.append(
-                f"best grid point's loss {grid_best_loss:.4g}, with the rim the first thresholds "
-                f"find; with the rim it finds itself it measured worse than {loss_after:.4g}"
+                f"best grid point's loss {grid_best_loss:.4g}, below the result's "
+                f"{loss_after:.4g}: the result is not the best point seen"
             )
         for name, loss, others in self.disagreeing:
             out.append(
