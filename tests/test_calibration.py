@@ -11,6 +11,8 @@ from __future__ import annotations
 import csv
 import math
 import shutil
+import subprocess
+import sys
 import types
 from pathlib import Path
 
@@ -298,8 +300,8 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
 
 def _clear_loss_caches() -> None:
     """Drop the compiled losses: the next call traces the stand-in that is installed now."""
-    C.loss_and_grad.clear_cache()
-    C.loss_value.clear_cache()
+    L._loss_and_grad.clear_cache()
+    L._loss_value.clear_cache()
 
 
 def fake_frames(theta2: float = math.nan) -> C.LabelledFrames:
@@ -347,6 +349,41 @@ def test_loss_value_is_the_loss_without_its_gradient(fake_measure) -> None:
     assert float(alone.loss) == pytest.approx(float(full.loss), rel=1e-12)
     np.testing.assert_array_equal(np.asarray(alone.frames.values), np.asarray(full.frames.values))
     assert not np.any(np.asarray(alone.grad)) and np.any(np.asarray(full.grad))
+
+
+def test_one_compiled_loss_serves_every_rig(fake_measure, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rig's rectangle, travel and radius reach the compiled loss as traced arrays: a
+    second rig of the same image size compiles nothing, and each rig's numbers are its own."""
+
+    def measure(image, seg, *, rect, travel, wheel_radius_mm, rim=None):
+        # Sinkage from every rig number: radius / 5 + rect x + 10 (travel sign).
+        x = jnp.asarray(rect[0]).astype(jnp.result_type(float))
+        sinkage = wheel_radius_mm / 5.0 + x + 10.0 * travel + 0.0 * seg.p_d_sat
+        return types.SimpleNamespace(
+            sinkage_mm=sinkage,
+            theta1_rad=jnp.radians(60.0 * seg.p_d_hue),
+            theta2_rad=jnp.radians(20.0 * seg.p_a_sat),
+            status=jnp.asarray(0, jnp.int32),
+            boundary_weight=jnp.full(5, 20.0),
+            params=jnp.asarray([4.0, 4.0, 3.0, 0, 0, 0, 0, 0, 0]),
+        )
+
+    monkeypatch.setattr(L, "measure", measure)
+    _clear_loss_caches()
+    frames = C.LabelledFrames(
+        np.zeros(FAKE_SHAPE, np.uint8), np.array([[28.0, np.nan, np.nan]] * 2), ("a", "b")
+    )
+    raw = C.to_raw(SegmentationParams())
+    args = (jnp.asarray(frames.images), jnp.asarray(frames.targets))
+    rigs = [((0, 0, 2, 2), "right", 100.0), ((3, 1, 2, 2), "left", 150.0)]
+    for (rect, travel, radius), sinkage in zip(rigs, (30.0, 23.0), strict=True):
+        out = C.loss_value(raw, *args, rect=rect, travel=travel, wheel_radius_mm=radius)
+        np.testing.assert_allclose(np.asarray(out.frames.values)[:, 0], sinkage, rtol=1e-12)
+        assert float(out.loss) == pytest.approx(float(C.pseudo_huber(sinkage - 28.0)), rel=1e-12)
+    assert L._loss_value._cache_size() == 1
+    with pytest.raises(ValueError, match="confidence"):
+        C.loss_value(raw, *args, rect=(6, 6, 4, 4), travel="right", wheel_radius_mm=100.0)
+    _clear_loss_caches()
 
 
 def test_failed_frames_count_as_zeros_and_keep_gradients_finite(
@@ -839,3 +876,31 @@ def test_the_returned_point_is_scored_with_the_rim_it_finds_itself() -> None:
         list(points), 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
     )
     assert chosen == 3 and scored == []
+
+
+_LOWER_GRADIENT = """
+import jax, jax.numpy as jnp
+from sinkjax import calibration as C
+from sinkjax.calibration import loss as L
+from sinkjax.rig import SegmentationParams
+from sinkjax.soft.fit import solve_failures_as_nan
+from sinkjax.soft.rim import RecordingRim
+args = (C.to_raw(SegmentationParams()), jnp.zeros((2, 40, 48, 3), jnp.uint8),
+        jnp.full((2, 3), 10.0), jax.random.key(0), RecordingRim.per_frame(),
+        L.loss_rig((10, 10, 5, 5), "right", 100.0), False, L.DEFAULT_CONFIG)
+with solve_failures_as_nan():
+    text = L._loss_and_grad.lower(*args).as_text()
+print("lapack" in text, "callback" in text)
+"""
+
+
+def test_calibration_gradient_has_no_callback_so_it_can_be_cached() -> None:
+    """A compiled function with a Python callback never enters JAX's persistent compilation
+    cache: the loss's gradient (through the fit's implicit lineax solve, which checks its
+    result with equinox.error_if) is traced with failures as NaN instead. Lowered in a fresh
+    process: equinox caches its traced checks, so the first trace decides."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _LOWER_GRADIENT], capture_output=True, text=True, check=True
+    )
+    # The linear solves are there (the gradient was lowered), their callback is not.
+    assert proc.stdout.split() == ["True", "False"], proc.stdout + proc.stderr[-2000:]
