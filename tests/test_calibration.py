@@ -25,7 +25,7 @@ import pytest
 
 import sinkjax.calibration as C
 from sinkjax.app.cli import main
-from sinkjax.calibration import cli as calibration_cli, loss as L, optimise as O
+from sinkjax.calibration import cli as calibration_cli, compiled as CL, loss as L, optimise as O
 from sinkjax.calibration.augment import (
     MIRED_LOG_GAINS_PER_100,
     brightness_contrast,
@@ -300,8 +300,8 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
 
 def _clear_loss_caches() -> None:
     """Drop the compiled losses: the next call traces the stand-in that is installed now."""
-    L._loss_and_grad.clear_cache()
-    L._loss_value.clear_cache()
+    CL._loss_and_grad.clear_cache()
+    CL._loss_value.clear_cache()
 
 
 def fake_frames(theta2: float = math.nan) -> C.LabelledFrames:
@@ -380,10 +380,30 @@ def test_one_compiled_loss_serves_every_rig(fake_measure, monkeypatch: pytest.Mo
         out = C.loss_value(raw, *args, rect=rect, travel=travel, wheel_radius_mm=radius)
         np.testing.assert_allclose(np.asarray(out.frames.values)[:, 0], sinkage, rtol=1e-12)
         assert float(out.loss) == pytest.approx(float(C.pseudo_huber(sinkage - 28.0)), rel=1e-12)
-    assert L._loss_value._cache_size() == 1
+    assert CL._loss_value._cache_size() == 1
     with pytest.raises(ValueError, match="confidence"):
         C.loss_value(raw, *args, rect=(6, 6, 4, 4), travel="right", wheel_radius_mm=100.0)
     _clear_loss_caches()
+
+
+def test_gradient_compiled_in_background_is_not_compiled_again(fake_measure) -> None:
+    # A compile, or its executable read from the session's persistent cache (conftest).
+    compiles: list[str] = []
+    kinds = ("backend_compile_duration", "cache_retrieval_time_sec")
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **kw: compiles.append(name) if name.endswith(kinds) else None
+    )
+    frames = fake_frames(theta2=30.0)
+    seg = SegmentationParams(p_d_sat=0.6, p_a_sat=1.6)
+    args = (C.to_raw(seg), jnp.asarray(frames.images), jnp.asarray(frames.targets))
+    rig = dict(rect=(0, 0, 2, 2), travel="right", wheel_radius_mm=100.0)
+    CL.compile_in_background(*args, jax.random.key(0), None, **rig).join()
+    assert compiles, "the thread compiled nothing"
+    before = len(compiles)
+    out = C.loss_and_grad(*args, jax.random.key(0), None, **rig)
+    assert len(compiles) == before  # found compiled
+    expected = (2 * C.pseudo_huber(4.0) + C.pseudo_huber(3.0) + 2 * C.pseudo_huber(2.0)) / 5
+    assert float(out.loss) == pytest.approx(float(expected), rel=1e-12)
 
 
 def test_failed_frames_count_as_zeros_and_keep_gradients_finite(
@@ -881,15 +901,15 @@ def test_the_returned_point_is_scored_with_the_rim_it_finds_itself() -> None:
 _LOWER_GRADIENT = """
 import jax, jax.numpy as jnp
 from sinkjax import calibration as C
-from sinkjax.calibration import loss as L
+from sinkjax.calibration import compiled as CL
 from sinkjax.rig import SegmentationParams
 from sinkjax.soft.fit import solve_failures_as_nan
 from sinkjax.soft.rim import RecordingRim
 args = (C.to_raw(SegmentationParams()), jnp.zeros((2, 40, 48, 3), jnp.uint8),
         jnp.full((2, 3), 10.0), jax.random.key(0), RecordingRim.per_frame(),
-        L.loss_rig((10, 10, 5, 5), "right", 100.0), False, L.DEFAULT_CONFIG)
+        CL.loss_rig((10, 10, 5, 5), "right", 100.0), False, C.DEFAULT_CONFIG)
 with solve_failures_as_nan():
-    text = L._loss_and_grad.lower(*args).as_text()
+    text = CL._loss_and_grad.lower(*args).as_text()
 print("lapack" in text, "callback" in text)
 """
 

@@ -1,7 +1,8 @@
 """Calibration: tune the segmentation thresholds to a few hand-labelled frames by gradient.
 
 ``labels`` reads and checks LABELS.csv -> ``loss`` is the robust error of the soft estimator on
-those frames, differentiable in the thresholds -> ``optimise`` scores a coarse grid and runs Adam
+those frames, differentiable in the thresholds (``compiled``: compiled once per image size) ->
+``optimise`` scores a coarse grid and runs Adam
 from its best points (back-off, early stop) and reports the calibrated rig; ``checks`` says
 whether it converged, which frames disagree and the leave-one-out error; ``augment``
 relights frames so the thresholds survive a moving lamp; ``cli`` is ``sinkjax calibrate``.
@@ -14,6 +15,7 @@ from .augment import (
     augment as augment,
 )
 from .checks import Checks as Checks, run_checks as run_checks
+from .compiled import loss_and_grad as loss_and_grad, loss_value as loss_value
 from .labels import (
     LABEL_COLUMNS as LABEL_COLUMNS,
     QUANTITIES as QUANTITIES,
@@ -29,8 +31,6 @@ from .loss import (
     frame_loss as frame_loss,
     from_raw as from_raw,
     labelled_soil_side as labelled_soil_side,
-    loss_and_grad as loss_and_grad,
-    loss_value as loss_value,
     mask_frame_loss as mask_frame_loss,
     pseudo_huber as pseudo_huber,
     to_raw as to_raw,

@@ -26,18 +26,16 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
-from ..rig import SEGMENTATION_KEYS, SegmentationParams, rect_problem
+from ..rig import SEGMENTATION_KEYS, SegmentationParams
 from ..soft.adaptive import default_segmenter
 from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure_from_mask
-from ..soft.fit import solve_failures_as_nan
 from ..soft.rim import RecordingRim
 from ..soft.segmentation import Rect
 from ..status import Status
-from .augment import DEFAULT_CONFIG, AugmentConfig, augment
+from .augment import AugmentConfig, augment
 
 LOSS_SCALES = (1.0, 1.0, 1.0)  # 1 mm of sinkage weighs as much as 1 degree of angle
 HUBER_DELTA = 1.0  # pseudo-Huber corner in those units: quadratic below, linear above
@@ -259,36 +257,14 @@ class LossAndGrad(eqx.Module):
 class LossRig(eqx.Module):
     """The rig's numbers the loss needs, as arrays: traced, so that one compiled loss serves
     every rig of an image size (a new rig's calibration compiles nothing that the persistent
-    compilation cache holds). Built by :func:`loss_rig`."""
+    compilation cache holds). Built by :func:`sinkjax.calibration.compiled.loss_rig`."""
 
     rect_px: Int[Array, " 4"]  # the confidence rectangle x, y, w, h
     travel_sign: Float[Array, ""]  # +1.0 travel right, -1.0 left
     wheel_radius_mm: Float[Array, ""]
 
 
-def loss_rig(
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    shape: tuple[int, ...] | None = None,
-) -> LossRig:
-    """:class:`LossRig` of a rig's confidence rectangle, travel and wheel radius, in the default
-    float dtype. ``shape``: the frames' (N, H, W, 3), against which the rectangle is checked
-    (ValueError if it does not lie inside the images)."""
-    if shape is not None:
-        plain = tuple(int(v) if isinstance(v, np.integer) else v for v in rect)
-        problem = rect_problem(plain, int(shape[-3]), int(shape[-2]))
-        if problem is not None:
-            raise ValueError(problem)
-    dt = jnp.result_type(float)
-    return LossRig(
-        rect_px=jnp.asarray(rect, jnp.int32),
-        travel_sign=jnp.asarray(travel_sign(travel), dt),
-        wheel_radius_mm=jnp.asarray(wheel_radius_mm, dt),
-    )
-
-
-def _frame_losses(
+def frame_losses(
     raw: Float[Array, " 7"],
     images_u8: UInt8[Array, "N H W 3"],
     targets: Float[Array, "N 3"],
@@ -300,6 +276,11 @@ def _frame_losses(
     config: AugmentConfig,
     with_grad: bool,
 ) -> LossAndGrad:
+    """The mean loss over the measured cells of a stack of labelled frames, each frame's loss and
+    values, and (``with_grad``) the gradient w.r.t. ``raw``: the body of the compiled losses of
+    :mod:`sinkjax.calibration.compiled`. Taking the gradient frame by frame lets a frame whose
+    fit produced non-finite values (and so a NaN implicit gradient) drop out of the gradient;
+    its constant penalty still counts in the loss."""
     dt = jnp.result_type(float)
     images = images_u8.astype(dt) / 255.0
     if use_augment:
@@ -321,70 +302,3 @@ def _frame_losses(
         losses, frames = jax.vmap(one, in_axes=(None, 0, 0))(raw, images, targets)
         grad = jnp.zeros_like(raw)
     return LossAndGrad(loss=jnp.sum(losses) / n_cells, grad=grad, frames=frames)
-
-
-# No rig statics: compiled once per image size, frame count and augmentation setting.
-@functools.partial(jax.jit, static_argnames=("use_augment", "config"))
-def _loss_and_grad(
-    raw: Array, images_u8: Array, targets: Array, key: PRNGKeyArray, rim: RecordingRim | None,
-    rig: LossRig, use_augment: bool, config: AugmentConfig,
-) -> LossAndGrad:  # fmt: skip
-    return _frame_losses(
-        raw, images_u8, targets, key, rim, rig, use_augment=use_augment, config=config,
-        with_grad=True,
-    )  # fmt: skip
-
-
-@jax.jit
-def _loss_value(
-    raw: Array, images_u8: Array, targets: Array, rim: RecordingRim | None, rig: LossRig
-) -> LossAndGrad:
-    return _frame_losses(
-        raw, images_u8, targets, jax.random.key(0), rim, rig, use_augment=False,
-        config=DEFAULT_CONFIG, with_grad=False,
-    )  # fmt: skip
-
-
-def loss_and_grad(
-    raw: Float[Array, " 7"],
-    images_u8: UInt8[Array, "N H W 3"],
-    targets: Float[Array, "N 3"],
-    key: PRNGKeyArray,
-    rim: RecordingRim | None = None,
-    *,
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    use_augment: bool = False,
-    config: AugmentConfig = DEFAULT_CONFIG,
-) -> LossAndGrad:
-    """The calibration loss of a stack of labelled frames and its gradient (vmap of grad).
-
-    Taking the gradient frame by frame lets a frame whose fit produced non-finite values (and
-    so a NaN implicit gradient) drop out of the gradient; its constant penalty still counts in
-    the loss. With ``use_augment`` each frame first gets a random lighting change from ``key``.
-    ``rim`` (traced; None: each frame's own) is the recording's rim every frame is measured with.
-    The rig's numbers are passed to the compiled function as arrays (:class:`LossRig`): one
-    compile per image size and frame count, whatever the rig (and cached on disk where JAX's
-    persistent compilation cache is on: :func:`~sinkjax.soft.fit.solve_failures_as_nan`).
-    Raises ValueError if ``rect`` does not lie inside the frames.
-    """
-    rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape)
-    with solve_failures_as_nan():  # no callback: the compiled loss can be cached on disk
-        return _loss_and_grad(raw, images_u8, targets, key, rim, rig, use_augment, config)
-
-
-def loss_value(
-    raw: Float[Array, " 7"],
-    images_u8: UInt8[Array, "N H W 3"],
-    targets: Float[Array, "N 3"],
-    rim: RecordingRim | None = None,
-    *,
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-) -> LossAndGrad:
-    """:func:`loss_and_grad`'s loss and frames without the gradient (``grad`` is zeros): the
-    forward pass alone (0.28 s against 0.45 s for 6 frames at 640x480), for scoring a grid."""
-    rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape)
-    return _loss_value(raw, images_u8, targets, rim, rig)

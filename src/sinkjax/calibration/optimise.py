@@ -3,13 +3,13 @@
 The loss is piecewise smooth (a frame stops measuring when a threshold crosses a point) and
 gradient descent from a mask that is far off can sit on a plateau. So calibration first scores a
 coarse grid over P_d/P_a of hue and saturation (:data:`GRID`, 81 points around the defaults,
-plus the rig's own point; its best few points again with the soil/background veto relaxed,
-:data:`VETO_RELAXED`) by the loss alone (:func:`~sinkjax.calibration.loss.loss_value`, cheaper
-than with its gradient), then runs Adam from the best few grid points (a short probe each, the
-rest of the steps from the best probe) and keeps the best point seen anywhere, scored as
-``sinkjax estimate`` will measure it (with the rim its own thresholds find): the result is never
-worse, on the labelled frames, than the grid's best point. Each descent keeps its best point,
-goes back there with a smaller step when a step lands where frames fail, and stops once the loss
+plus the rig's own point; its best few again with the soil/background veto relaxed,
+:data:`VETO_RELAXED`) by the loss alone (``compiled.loss_value``, while the gradient compiles on
+another thread), then runs Adam from the best few grid points (a short probe each, the rest of
+the steps from the best probe) and keeps the best point seen anywhere, scored as ``sinkjax
+estimate`` will measure it (with the rim its own thresholds find): the result is never worse,
+on the labelled frames, than the grid's best point. Each descent keeps its best point, goes
+back there with a smaller step when a step lands where frames fail, and stops once the loss
 has not improved for a while.
 ``checks.py`` then says whether it converged, which labelled frames disagree with the rest, and
 the leave-one-out error.
@@ -37,17 +37,17 @@ from ..soft.rim import RecordingRim
 from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig
 from .checks import Checks, run_checks
+from .compiled import compile_in_background, loss_and_grad, loss_value
 from .labels import LabelledFrames
-from .loss import LossAndGrad, from_raw, loss_and_grad, loss_value, to_raw
+from .loss import LossAndGrad, from_raw, to_raw
 from .rescore import _as_estimate_measures, _distinct_lowest
 
 BACKTRACK = 2.0  # a loss above this times the best so far sends Adam back to the best point
 _OK = Status.OK.code
 # The coarse grid (81 points) around the defaults (P_d(H) 0.9, P_a(H) 1.1, P_d(S) 0.5,
 # P_a(S) 1.8): each value, a narrow and a wide band in each direction. The 16 corners alone
-# (no default values) missed the best band on a colour cast (hard_cast, seed 20263: P_d(S) 0.7
-# with the others at their defaults, loss 0.20, where the calibration from the corners, as
-# measured, ended at the defaults' 0.26).
+# missed the best band on a colour cast (hard_cast, seed 20263: P_d(S) 0.7, loss 0.20, where
+# the calibration from the corners ended at the defaults' 0.26).
 GRID: dict[str, tuple[float, ...]] = {
     "p_d_hue": (0.8, 0.9, 0.95),
     "p_a_hue": (1.05, 1.1, 1.2),
@@ -57,8 +57,7 @@ GRID: dict[str, tuple[float, ...]] = {
 N_STARTS = 3
 # The best grid points are also scored with the soil/background veto relaxed to this fraction
 # (SegmentationParams.veto_fraction; 0.25 by default): dust that blends the wheel's colour
-# towards the soil's survives the veto only then, and Adam alone would take many steps to get
-# there.
+# towards the soil's survives the veto only then (Adam alone would take many steps to get there).
 VETO_RELAXED = 1.0
 # This many of the lowest grid points (one of each loss) are scored again with the veto relaxed.
 N_RELAXED = 6
@@ -249,13 +248,10 @@ def calibrate(
     t0 = time.perf_counter()
     held = labelled_rim(frames, rig, rim)
     images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
-    static = dict(
-        rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=float(rig.wheel_radius_mm)
-    )
+    static = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
     key = jax.random.key(seed)
 
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
-        # Positional arrays, keyword statics: one compiled function for every caller.
         return loss_and_grad(r, images, targets, k, held, **static, **augmenting)  # type: ignore[arg-type]
 
     def value(r: Array) -> LossAndGrad:
@@ -267,7 +263,12 @@ def calibrate(
 
     dt = jnp.result_type(float)
     raw0 = to_raw(rig.segmentation).astype(dt)
-    first = call(raw0)
+    # The gradient compiles on another core while the grid is scored with the loss alone.
+    compiling = compile_in_background(
+        raw0, images, targets, key, held, **static,
+        augment_config=augment_config if augment else None,
+    )  # fmt: skip
+    first = value(raw0)
     points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
     base = rig.segmentation.as_dict()
     for combo in itertools.product(*(grid or {}).values()):
@@ -295,8 +296,9 @@ def calibrate(
     aug = noisy if augment else None
     runs = []
     for i in chosen:
-        # Grid points were scored without the gradient: the descent starts with it.
-        start = points[i] if i == 0 else (points[i][0], call(points[i][0]))
+        # Grid points (and the start) were scored without the gradient: the descent takes it.
+        compiling.join()
+        start = (points[i][0], call(points[i][0]))
         d = _descend(call, *start, probe, learning_rate, patience, aug, on_step)
         points += d.trail
         runs.append(d)
