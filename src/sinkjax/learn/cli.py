@@ -66,10 +66,14 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
         help="hidden units (mlp, default 16) or channels (cnn, default 16)",
     )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="initialisation seed (0)")
+    from ..app.cli_estimate import add_cache_option
+
+    add_cache_option(p)
 
 
 def run_cli(args: argparse.Namespace) -> int:
     """``sinkjax train``: validate everything, imitate the default masks, train, save, report."""
+    from ..app.cli_estimate import setup_compile_cache
     from ..rig import RigError
 
     if not 0.0 <= args.held_out < 1.0:
@@ -94,6 +98,7 @@ def run_cli(args: argparse.Namespace) -> int:
         else {"hidden" if args.segmenter == "mlp" else "channels": args.width}
     )
     batches, held_batches = frame_batches(training), frame_batches(held)
+    setup_compile_cache(args)
     seg, ce = imitate(build(args.segmenter, key=args.seed, **hyper), batches, seed=args.seed)
     print(f"start: imitated the rigs' default masks (pixel cross-entropy {ce:.3f})")
     result = train(

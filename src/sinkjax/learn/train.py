@@ -27,6 +27,7 @@ from jaxtyping import Array, Float
 from ..calibration.loss import boundary_contrast, mask_frame_loss
 from ..soft.adaptive import default_segmenter
 from ..soft.checks import MAX_HALF_RING_DISAGREEMENT, ring_disagreement
+from ..soft.fit import solve_failures_as_nan
 from ..status import Status
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter
@@ -391,7 +392,8 @@ def train(
     bar = tqdm(range(1, steps + 1), desc="train", unit="step", disable=not progress, leave=False)
     for step in bar:
         mini = _batches_of(batches, batch_size, rng)
-        loss, grad, _ = loss_and_grad(seg, mini, *weights)
+        with solve_failures_as_nan():  # a singular implicit solve: NaN, dropped; cacheable
+            loss, grad, _ = loss_and_grad(seg, mini, *weights)
         seg, state, halvings = _backtracked_step(
             optimiser, seg, grad, state, mini, float(loss), weights
         )
