@@ -2,10 +2,10 @@
 
 ``labels`` reads and checks LABELS.csv -> ``loss`` is the robust error of the soft estimator on
 those frames, differentiable in the thresholds (``compiled``: compiled once per image size) ->
-``optimise`` scores a coarse grid and runs Adam
-from its best points (back-off, early stop) and reports the calibrated rig; ``checks`` says
-whether it converged, which frames disagree and the leave-one-out error; ``augment``
-relights frames so the thresholds survive a moving lamp; ``cli`` is ``sinkjax calibrate``.
+``optimise`` scores a coarse grid and runs Adam from its best points (back-off, early stop) and
+reports the calibrated rig; ``checks`` says whether it converged, which frames disagree and the
+leave-one-out error; ``augment`` relights frames so the thresholds survive a moving lamp;
+``cli`` is ``sinkjax calibrate``.
 The public names are re-exported here, flat.
 """
 

@@ -248,14 +248,14 @@ def calibrate(
     t0 = time.perf_counter()
     held = labelled_rim(frames, rig, rim)
     images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
-    static = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
+    numbers = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
     key = jax.random.key(seed)
 
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
-        return loss_and_grad(r, images, targets, k, held, **static, **augmenting)  # type: ignore[arg-type]
+        return loss_and_grad(r, images, targets, k, held, **numbers, **augmenting)  # type: ignore[arg-type]
 
     def value(r: Array) -> LossAndGrad:
-        return loss_value(r, images, targets, held, **static)  # type: ignore[arg-type]
+        return loss_value(r, images, targets, held, **numbers)  # type: ignore[arg-type]
 
     def noisy(r: Array, step: int) -> Array:
         k = jax.random.fold_in(key, step)
@@ -265,7 +265,7 @@ def calibrate(
     raw0 = to_raw(rig.segmentation).astype(dt)
     # The gradient compiles on another core while the grid is scored with the loss alone.
     compiling = compile_in_background(
-        raw0, images, targets, key, held, **static,
+        raw0, images, targets, key, held, **numbers,
         augment_config=augment_config if augment else None,
     )  # fmt: skip
     first = value(raw0)
@@ -316,7 +316,7 @@ def calibrate(
     if rim == "recording":
         i_best, measured = _as_estimate_measures(
             points, i_best, n_grid,
-            lambda r, h: loss_value(r, images, targets, h, **static),  # type: ignore[arg-type]
+            lambda r, h: loss_value(r, images, targets, h, **numbers),  # type: ignore[arg-type]
             lambda r: _own_rim(frames, _with(rig, r)), held,
         )  # fmt: skip
     raw_best, out_best = points[i_best]

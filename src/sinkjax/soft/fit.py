@@ -385,8 +385,8 @@ def solve_failures_as_nan() -> Iterator[None]:
     ``equinox.error_if``, which by default raises and puts a Python callback into the
     compiled function; a function with a callback never enters JAX's persistent compilation
     cache. Calibration and training drop a frame with a NaN gradient anyway, so they trace
-    their gradients under this (equinox's ``EQX_ON_ERROR=nan``, for this trace only; without
-    that setting in equinox, nothing changes)."""
+    their gradients under this (equinox's ``EQX_ON_ERROR=nan`` for this trace only; equinox
+    reuses a check it traced before, so a process's first such trace decides)."""
     import equinox._errors as errors  # the setting equinox reads when it traces error_if
 
     before = getattr(errors, "EQX_ON_ERROR", None)
