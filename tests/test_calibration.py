@@ -903,12 +903,11 @@ import jax, jax.numpy as jnp
 from sinkjax import calibration as C
 from sinkjax.calibration import compiled as CL
 from sinkjax.rig import SegmentationParams
-from sinkjax.soft.fit import solve_failures_as_nan
 from sinkjax.soft.rim import RecordingRim
 args = (C.to_raw(SegmentationParams()), jnp.zeros((2, 40, 48, 3), jnp.uint8),
         jnp.full((2, 3), 10.0), jax.random.key(0), RecordingRim.per_frame(),
         CL.loss_rig((10, 10, 5, 5), "right", 100.0), False, C.DEFAULT_CONFIG)
-with solve_failures_as_nan():
+with CL.solve_failures_as_nan():
     text = CL._loss_and_grad.lower(*args).as_text()
 print("lapack" in text, "callback" in text)
 """
@@ -924,3 +923,19 @@ def test_calibration_gradient_has_no_callback_so_it_can_be_cached() -> None:
     )
     # The linear solves are there (the gradient was lowered), their callback is not.
     assert proc.stdout.split() == ["True", "False"], proc.stdout + proc.stderr[-2000:]
+
+
+def test_failures_as_nan_is_undone_when_contexts_overlap() -> None:
+    """Two threads' contexts that overlap (A enters, B enters, A leaves, B leaves) leave equinox's
+    setting as it was, and "nan" while either is inside."""
+    import equinox._errors as errors
+
+    before = errors.EQX_ON_ERROR
+    a, b = CL.solve_failures_as_nan(), CL.solve_failures_as_nan()
+    a.__enter__()
+    assert errors.EQX_ON_ERROR == "nan"
+    b.__enter__()
+    a.__exit__(None, None, None)
+    assert errors.EQX_ON_ERROR == "nan"  # B is still inside
+    b.__exit__(None, None, None)
+    assert errors.EQX_ON_ERROR == before

@@ -3,7 +3,7 @@
 :func:`loss_and_grad` and :func:`loss_value` are :func:`~sinkjax.calibration.loss.frame_losses`
 compiled with the rig's numbers as traced arrays (:class:`~sinkjax.calibration.loss.LossRig`),
 so one compiled function serves every rig of an image size and number of labelled frames. The
-gradient is traced with a failed implicit solve as NaN (``soft.fit.solve_failures_as_nan``):
+gradient is traced with a failed implicit solve as NaN (:func:`solve_failures_as_nan`):
 without a Python callback in it, it enters JAX's persistent compilation cache, and a second
 calibration of a size already seen compiles nothing. :func:`compile_in_background` compiles the
 gradient on another thread while the grid is scored with the loss alone (the first calibration
@@ -12,8 +12,11 @@ of a size: compiling the two at once on two cores).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import threading
+from collections.abc import Iterator
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -22,10 +25,48 @@ from jaxtyping import Array, Float, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
 from ..rig import rect_problem
-from ..soft.fit import solve_failures_as_nan
 from ..soft.rim import RecordingRim
 from .augment import DEFAULT_CONFIG, AugmentConfig
 from .loss import LossAndGrad, LossRig, frame_losses
+
+
+class _OnError:
+    """Threads inside :func:`solve_failures_as_nan`, and equinox's setting before the first."""
+
+    lock = threading.Lock()
+    depth = 0
+    before: Any = None
+
+
+@contextlib.contextmanager
+def solve_failures_as_nan() -> Iterator[None]:
+    """While a function is traced under this: a linear solve of the fit's implicit gradient
+    that fails (a singular system) gives NaN instead of a runtime error.
+
+    optimistix differentiates the fit through a lineax solve that checks its result with
+    ``equinox.error_if``, which by default raises and puts a Python callback into the
+    compiled function; a function with a callback never enters JAX's persistent compilation
+    cache. Calibration and training drop a frame with a NaN gradient anyway, so they trace
+    their gradients under this: equinox's ``EQX_ON_ERROR=nan`` while any thread is inside
+    (equinox reuses a check it traced before, so a process's first such trace decides).
+    Without that setting in equinox, nothing changes."""
+    import equinox._errors as errors  # the setting equinox reads when it traces error_if
+
+    if not hasattr(errors, "EQX_ON_ERROR"):
+        yield
+        return
+    with _OnError.lock:
+        if _OnError.depth == 0:
+            _OnError.before = errors.EQX_ON_ERROR
+            errors.EQX_ON_ERROR = "nan"
+        _OnError.depth += 1
+    try:
+        yield
+    finally:
+        with _OnError.lock:
+            _OnError.depth -= 1
+            if _OnError.depth == 0:
+                errors.EQX_ON_ERROR = _OnError.before
 
 
 def loss_rig(
@@ -91,7 +132,7 @@ def loss_and_grad(
     own) is the recording's rim every frame is measured with. The rig's numbers reach the
     compiled function as arrays (:class:`~sinkjax.calibration.loss.LossRig`): one compile per
     image size and frame count, whatever the rig, cached on disk where JAX's persistent
-    compilation cache is on (:func:`~sinkjax.soft.fit.solve_failures_as_nan`). Raises
+    compilation cache is on (:func:`solve_failures_as_nan`). Raises
     ValueError if ``rect`` does not lie inside the frames.
     """
     rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape)

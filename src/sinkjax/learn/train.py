@@ -24,10 +24,10 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
+from ..calibration.compiled import solve_failures_as_nan
 from ..calibration.loss import boundary_contrast, mask_frame_loss
 from ..soft.adaptive import default_segmenter
 from ..soft.checks import MAX_HALF_RING_DISAGREEMENT, ring_disagreement
-from ..soft.fit import solve_failures_as_nan
 from ..status import Status
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter

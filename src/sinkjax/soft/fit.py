@@ -8,9 +8,6 @@ sub-pixel point positions to the parameters.
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -374,27 +371,3 @@ def fit(ev: Evidence, *, max_steps: int = 256, capacity: int | None = None) -> F
         p, converged, steps = jax.lax.cond(complete, solve, lambda _: solve(ev), small)
     ok = converged & jnp.all(jnp.isfinite(p))
     return FitResult(params=p, residuals=residuals(p, ev), ok=ok, steps=steps)
-
-
-@contextlib.contextmanager
-def solve_failures_as_nan() -> Iterator[None]:
-    """While a function is traced under this: a linear solve of the fit's implicit gradient
-    that fails (a singular system) gives NaN instead of a runtime error.
-
-    optimistix differentiates the fit through a lineax solve that checks its result with
-    ``equinox.error_if``, which by default raises and puts a Python callback into the
-    compiled function; a function with a callback never enters JAX's persistent compilation
-    cache. Calibration and training drop a frame with a NaN gradient anyway, so they trace
-    their gradients under this (equinox's ``EQX_ON_ERROR=nan`` for this trace only; equinox
-    reuses a check it traced before, so a process's first such trace decides)."""
-    import equinox._errors as errors  # the setting equinox reads when it traces error_if
-
-    before = getattr(errors, "EQX_ON_ERROR", None)
-    if before is None:
-        yield
-        return
-    errors.EQX_ON_ERROR = "nan"
-    try:
-        yield
-    finally:
-        errors.EQX_ON_ERROR = before
