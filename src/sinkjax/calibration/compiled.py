@@ -50,9 +50,11 @@ def solve_failures_as_nan() -> Iterator[None]:
     their gradients under this: equinox's ``EQX_ON_ERROR=nan`` while any thread is inside
     (equinox reuses a check it traced before, so a process's first such trace decides).
     Without that setting in equinox, nothing changes."""
-    import equinox._errors as errors  # the setting equinox reads when it traces error_if
+    try:
+        import equinox._errors as errors  # the setting equinox reads when it traces error_if
 
-    if not hasattr(errors, "EQX_ON_ERROR"):
+        errors.EQX_ON_ERROR  # noqa: B018 - present in this equinox?
+    except (ImportError, AttributeError):  # another equinox: its default behaviour
         yield
         return
     with _OnError.lock:
