@@ -89,7 +89,7 @@ def run_cli(args: argparse.Namespace) -> int:
     _check_out(out, [labels.parent / name for name in frames.names])
     from ..app.cli_estimate import setup_compile_cache
 
-    # A second calibration of the same rig and image size loads its compiled loss from disk.
+    # A second calibration of a size already seen (any rig) loads its compiled loss from disk.
     setup_compile_cache(args)
     n_cells = int(np.isfinite(frames.targets).sum())
     print(f"calibrating {rig_path} on {len(frames.names)} frames ({n_cells} measured values)")

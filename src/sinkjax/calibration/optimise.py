@@ -18,6 +18,7 @@ the leave-one-out error.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import logging
 import math
@@ -313,27 +314,27 @@ def calibrate(
         bar.update(len(last.losses) - 1)
     bar.close()
     i_best = min(range(len(points)), key=lambda i: float(points[i][1].loss))
+    found = functools.cache(lambda key: _own_rim(frames, _with(rig, jnp.asarray(key))))
+    rim_of = lambda r: found(tuple(np.asarray(r).tolist()))  # each point's own rim, found once
     if rim == "recording":
         i_best, measured = _as_estimate_measures(
             points, i_best, n_grid,
             lambda r, h: loss_value(r, images, targets, h, **numbers),  # type: ignore[arg-type]
-            lambda r: _own_rim(frames, _with(rig, r)), held,
+            rim_of, held,
         )  # fmt: skip
     raw_best, out_best = points[i_best]
     calibrated = _with(rig, raw_best)
-    losses = last.losses
     if rim != "recording":
         measured = set(range(n_grid))
-    # The best grid point as the calibrated rig is compared with: scored as it will be measured
-    # (with the start's rim where none was scored again: all lay above the result).
+    # The best grid point as it will be measured (the start's rim where none was scored again).
     on_grid = [float(points[i][1].loss) for i in range(1, n_grid) if i in measured] or [
         float(points[i][1].loss) for i in range(1, n_grid)
     ]
     grid_best = min(on_grid) if grid and on_grid else math.nan
     return CalibrationResult(
         rig=calibrated,
-        losses=tuple(losses),
-        best_step=int(np.argmin(losses)),
+        losses=tuple(last.losses),
+        best_step=int(np.argmin(last.losses)),
         before=_errors(first, frames.targets),
         after=_errors(out_best, frames.targets),
         seconds=time.perf_counter() - t0,
@@ -349,7 +350,7 @@ def calibrate(
             last.losses,
             last.stopped_early,
         ),
-        rim=(_own_rim(frames, calibrated) if rim == "recording" else held).describe(),
+        rim=(rim_of(raw_best) if rim == "recording" else held).describe(),
     )
 
 
