@@ -9,6 +9,7 @@ loss once for the whole module.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import shutil
 import subprocess
@@ -536,6 +537,31 @@ def test_grid_start_escapes_a_plateau_and_is_never_worse_than_the_grid(
     # 0.7 is the only grid value of P_d(S) that measures, and 28 / 40 = 0.7 the optimum.
     assert res.rig.segmentation.as_dict()["p_d_sat"] == pytest.approx(0.7, abs=5e-3)
     assert "best grid point" in res.summary() and "leave-one-out" in res.summary()
+
+
+def test_zero_steps_is_the_grid_search_alone_without_a_gradient(
+    fake_measure, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def no_gradient(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a gradient was asked for with steps=0")
+
+    monkeypatch.setattr(O, "compile_in_background", no_gradient)
+    monkeypatch.setattr(O, "loss_and_grad", no_gradient)
+    res = C.calibrate(fake_frames(), FAKE_RIG, steps=0)
+    assert res.losses == (res.loss_after,) and res.best_step == 0
+    # The lowest point of the grid (the rig's own point is not on it), scored as with steps.
+    assert res.loss_after == pytest.approx(res.grid_best_loss, rel=1e-12)
+    assert res.loss_after < res.loss_before
+    grid = {k: v for k, v in C.GRID.items()}
+    best = min(
+        itertools.product(*grid.values()),
+        key=lambda c: float(
+            fake_loss(fake_frames(), SegmentationParams(**dict(zip(grid, c, strict=True)))).loss
+        ),
+    )
+    got = res.rig.segmentation.as_dict()
+    for name, value in zip(grid, best, strict=True):
+        assert got[name] == pytest.approx(value, rel=1e-9), name
 
 
 def test_calibration_checks_convergence_disagreement_and_leave_one_out(fake_measure) -> None:

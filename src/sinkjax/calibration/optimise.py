@@ -220,15 +220,16 @@ def calibrate(
     alone, the best of those (:data:`N_RELAXED`, one of each loss) again with the veto relaxed
     (:data:`VETO_RELAXED`), then runs Adam from the ``starts`` best of them (one of each loss):
     ``steps // (2 starts)`` probe steps each, the remaining steps from the best probe's best
-    point. The calibrated rig is the lowest loss seen anywhere
-    (grid points included), as ``sinkjax estimate`` measures it: the lowest point, the start
-    and the lowest grid points (see :func:`_as_estimate_measures`) are scored again with the rim
-    each finds itself. Each descent keeps its best point, goes back there with half the step
-    size after a step that more than doubles the loss (frames stopped measuring) and stops after
-    ``patience`` steps without improvement. With ``augment`` each step's gradient averages the
-    frames as labelled and under a random lighting change. The result's ``checks`` say whether
-    the last descent converged, which frames disagree with the rest, and the leave-one-out error.
-    ``losses`` is the final descent's loss per step (from its starting point).
+    point. The calibrated rig is the lowest loss seen anywhere (grid points included), as
+    ``sinkjax estimate`` measures it: the lowest point, the start and the lowest grid points
+    (see :func:`_as_estimate_measures`) are scored again with the rim each finds itself. Each
+    descent keeps its best point, goes back there with half the step size after a step that
+    more than doubles the loss (frames stopped measuring) and stops after ``patience`` steps
+    without improvement. With ``augment`` each step's gradient averages the frames as labelled
+    and under a random lighting change; ``steps=0``: the grid search alone
+    (no gradient is compiled). The result's ``checks`` say whether the last descent converged,
+    which frames disagree with the rest, and the leave-one-out error. ``losses`` is the final
+    descent's loss per step (from its starting point).
     ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
     ``sinkjax estimate`` measures them: their rim circle is found once, from the frames
     themselves with ``rig``'s thresholds (:class:`~sinkjax.soft.batch.SoftRecording`), and every
@@ -268,7 +269,7 @@ def calibrate(
     compiling = compile_in_background(
         raw0, images, targets, key, held, **numbers,
         augment_config=augment_config if augment else None,
-    )  # fmt: skip
+    ) if steps else None  # fmt: skip
     first = value(raw0)
     points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
     base = rig.segmentation.as_dict()
@@ -298,18 +299,17 @@ def calibrate(
     runs = []
     for i in chosen:
         # Grid points (and the start) were scored without the gradient: the descent takes it.
-        compiling.join()
-        start = (points[i][0], call(points[i][0]))
+        if compiling is not None:
+            compiling.join()
+        start = (points[i][0], call(points[i][0]) if steps else points[i][1])
         d = _descend(call, *start, probe, learning_rate, patience, aug, on_step)
         points += d.trail
         runs.append(d)
         bar.update(len(d.losses) - 1)
     last = min(runs, key=lambda d: float(d.out.loss))
     if len(chosen) > 1 and steps - probe * len(chosen) > 0:
-        last = _descend(
-            call, last.raw, last.out, steps - probe * len(chosen), learning_rate, patience, aug,
-            on_step,
-        )  # fmt: skip
+        rest = steps - probe * len(chosen)
+        last = _descend(call, last.raw, last.out, rest, learning_rate, patience, aug, on_step)
         points += last.trail
         bar.update(len(last.losses) - 1)
     bar.close()

@@ -77,7 +77,7 @@ def imitate_torch(
         value = nn.functional.binary_cross_entropy(pred, masks)
         value.backward()
         opt.step()
-    return float(value)
+    return float(value.detach())
 
 
 def label_loss(values: Tensor, status: Tensor, targets: Tensor) -> Tensor:
@@ -121,19 +121,23 @@ def train_torch(
         return label_loss(est.values, est.status, targets)
 
     losses = []
+    loss = loss_now()
     for _ in range(steps):
         opt.zero_grad()
-        loss = loss_now()
         loss.backward()
         before = [p.detach().clone() for p in params]
         opt.step()
         step = [p.detach() - b for p, b in zip(params, before, strict=True)]
-        with torch.no_grad():
-            for halvings in range(MAX_HALVINGS + 2):
-                factor = 0.5**halvings if halvings <= MAX_HALVINGS else 0.0
+        # The step's check is the next step's loss, graph and all: one fit per step (and one
+        # compiled forward: under no_grad the bridge would compile its plain forward as well).
+        for halvings in range(MAX_HALVINGS + 2):
+            factor = 0.5**halvings if halvings <= MAX_HALVINGS else 0.0
+            with torch.no_grad():
                 for p, b, d in zip(params, before, step, strict=True):
                     p.copy_(b + factor * d)
-                if factor == 0.0 or float(loss_now()) <= float(loss) * (1.0 + MAX_RISE):
-                    break
-        losses.append(float(loss))
+            after = loss_now()
+            if factor == 0.0 or float(after.detach()) <= float(loss.detach()) * (1.0 + MAX_RISE):
+                break
+        losses.append(float(loss.detach()))
+        loss = after
     return losses
