@@ -12,6 +12,7 @@ from sinkjax import Status, estimate_classic, synth
 from sinkjax.rig import SegmentationParams
 from sinkjax.soft.adaptive import (
     AdaptiveSegmenter,
+    deepest_valley,
     log_histogram,
     texture,
     valley,
@@ -117,6 +118,78 @@ def test_valley_threshold_lies_between_the_populations() -> None:
     hist, centres = log_histogram(jnp.asarray(bright))
     t = float(valley(hist, centres, jnp.log(0.08), jnp.log(0.48), jnp.asarray(True)))
     assert 0.28 < t < 0.48
+
+
+def test_deepest_valley_parts_a_small_dark_population_from_a_long_tail() -> None:
+    # Inside a metal wheel's rim: a shaded side that fades in a long tail from 0.9 down to 0.2,
+    # and a small population of soil in shadow around 0.09 below the soil line (1.5 % of the
+    # pixels). The threshold lies in the gap between them, at the bin numpy's own smoothed
+    # histogram puts furthest below the smaller of the highest bins on either side; the
+    # long tail alone (no second population) gives the bottom of the range: all wheel.
+    rng = np.random.default_rng(2)
+    tail = np.exp(rng.uniform(np.log(0.2), np.log(0.9), 60_000))
+    tail = np.concatenate([tail, np.exp(rng.normal(np.log(0.75), 0.1, 40_000))])
+    soil = np.exp(rng.normal(np.log(0.09), 0.15, 1_500))
+    lo, hi = np.log(0.07), np.log(0.45)
+    for values, expect_gap in ((np.concatenate([tail, soil]), True), (tail, False)):
+        img = values[: values.size // 100 * 100].reshape(-1, 100)
+        img = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)  # the histogram takes every 2nd px
+        hist, centres = log_histogram(jnp.asarray(img))
+        t = float(deepest_valley(hist, centres, jnp.asarray(lo), jnp.asarray(hi)))
+        log_i = np.log(np.clip(img[::2, ::2], 1 / 255, 1))
+        counts, edges = np.histogram(log_i, 64, (np.log(1 / 255), 0))
+        smooth = np.convolve(counts, np.array([1, 2, 3, 2, 1]) / 9, mode="same")
+        mid = 0.5 * (edges[1:] + edges[:-1])
+        in_range = (mid >= lo) & (mid <= hi)
+        h = np.where(in_range, smooth, 0.0)
+        side = np.minimum(np.maximum.accumulate(h), np.maximum.accumulate(h[::-1])[::-1])
+        real = in_range & (side >= 2e-4 * smooth.sum())
+        depth = np.where(real, (side - h) / np.maximum(side, 1e-9), 0.0)
+        if expect_gap:
+            assert depth.max() >= 0.25
+            assert np.log(t) == pytest.approx(mid[np.argmax(depth)], abs=1e-6)
+            assert 0.12 < t < 0.2
+        else:
+            assert depth.max() < 0.25
+            assert t == pytest.approx(0.07, rel=1e-9)
+
+
+def _iou(mask: np.ndarray, truth: np.ndarray, where: np.ndarray) -> float:
+    return float((mask & truth & where).sum() / ((mask | truth) & where).sum())
+
+
+def test_rim_inside_rule_against_rendered_truth() -> None:
+    """With the rim known, a metal wheel's mask inside it matches the renderer's exact wheel at
+    least as well as without (much better where the shaded side fades into a grey sky), and a
+    black wheel's mask does not change (its threshold already parts it from sky and soil)."""
+    seg = AdaptiveSegmenter()
+    plain = jax.jit(lambda x, r: seg(x, r))
+    with_rim = jax.jit(lambda x, r, d: seg.with_rim(x, r, d))
+    gains = []
+    for preset in ("hard_metal", "metal_wheel", "black_wheel"):
+        for seed in range(6):
+            rng = np.random.default_rng(seed)
+            sc = synth.recording_scenes(rng, 1, preset=preset, width=320, height=240)[0]
+            img, t = synth.render(sc, seed)
+            rig = synth.rig_for(sc)
+            x = jnp.asarray(img, jnp.float64) / 255.0
+            rect = jnp.asarray(rig.confidence_rect)
+            truth = coverage(sc)[..., list(WHEEL_LAYERS)].sum(-1) > 0.5
+            yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
+            inside = (xx - t.center_x_px) ** 2 + (yy - t.center_y_px) ** 2 < t.radius_px**2
+            disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
+            a = np.asarray(plain(x, rect)) > 0.5
+            b = np.asarray(with_rim(x, rect, disc)) > 0.5
+
+            if preset == "black_wheel":
+                np.testing.assert_array_equal(a, b)
+                continue
+            before, after = _iou(a, truth, inside), _iou(b, truth, inside)
+            assert after >= before - 0.005, (preset, seed)
+            gains.append(after - before)
+            # Outside the rim nothing changes (the background is still told from the wheel).
+            np.testing.assert_array_equal(a[~inside], b[~inside])
+    assert max(gains) > 0.05 and np.mean(gains) > 0.01
 
 
 @pytest.mark.parametrize(

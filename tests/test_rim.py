@@ -107,6 +107,32 @@ def test_rows_do_not_depend_on_how_the_recording_is_cut(rendered) -> None:
     assert chunk.rims[images[0].shape[:2]] == rim
 
 
+def test_first_frames_are_segmented_again_when_the_mask_uses_the_rim(rendered) -> None:
+    """A metal wheel's mask uses the rim (``Segmenter.with_rim``): the recording's first frames,
+    segmented before its rim was known, are segmented again with it, so that they give the rows
+    that any later frame (measured with the rim from the start) would."""
+    from sinkjax.soft.adaptive import AdaptiveSegmenter
+
+    images, _, rig = rendered("hard_metal", n=4, seed=5)
+    names = [f"f{i}" for i in range(4)]
+    whole = SoftRecording()
+    first = whole(images, rig, names)
+    rim = whole.rims[images[0].shape[:2]]
+    assert float(rim.use) == 1.0
+    given = SoftRecording(rim=rim)(images, rig, names)
+    for a, b in zip(first, given, strict=True):
+        assert a == b
+    assert {r.segmenter_features for r in first} == {"intensity+texture"}
+    # The rim changes these masks: the test above would see first frames left as they were.
+    seg = AdaptiveSegmenter(rig.segmentation)
+    rect = jnp.asarray(rig.confidence_rect)
+    changed = 0
+    for im in images:
+        x = jnp.asarray(im, jnp.float64) / 255.0
+        changed += int(not np.array_equal(seg(x, rect), seg.with_rim(x, rect, rim.disc())))
+    assert changed >= 1
+
+
 @pytest.mark.slow
 def test_gradients_pass_through_a_fixed_recording_rim(rendered) -> None:
     """Calibration differentiates through the fit with the rim held: finite, and equal to a

@@ -31,6 +31,16 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
     count as texture on either side), stays under ``p_tex`` times the rectangle's (sand has
     grain, rubber and metal do not).
 
+With the recording's rim known (:meth:`AdaptiveSegmenter.with_rim`, which the soft method uses
+once a recording's rim is found), a metal wheel's intensity threshold inside the rim comes from
+the inside's own histogram: only wheel and soil can be there, not the background, so the
+threshold goes to the deepest valley between the wheel (its shaded side included, however dark)
+and the soil or its shadow (:func:`deepest_valley`; none: all of the inside passes the
+intensity test and chroma and texture alone part wheel from soil). It is used only where that
+rule still calls the soil below the rim (the frame's bottom rows under the circle) soil; else the
+frame's own threshold stays. A black wheel's threshold already lies between it and anything
+brighter, sky or soil, and does not change.
+
 The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
 """
@@ -46,7 +56,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .segmentation import HueSat, Rect, smooth, wheel_mask
-from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Segmenter, rect_weight
+from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, rect_weight
 
 _SQRT3_2 = 0.8660254037844386
 _TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
@@ -104,17 +114,26 @@ _HIST_BINS = 64
 _DARK_RISE = 2.0
 _DARK_RISE_SPAN = 1.3
 _LOG_I_MIN = float(np.log(1.0 / 255.0))  # one 8-bit step: the darkest intensity binned
+# The inside of a recording's rim sets its own threshold only with this many pixels in it, at
+# a valley at least this deep (relative) between populations of at least this share per bin.
+_MIN_DISC_PX = 400.0
+_SOIL_GAP_PX = 2.0  # the soil asked: below the rim, this far clear of it (its edge blur)
+_MAX_SOIL_AS_WHEEL = 0.05  # the inside's rule is kept if it calls at most this share wheel
+_VALLEY_DEPTH = 0.25
+_VALLEY_MIN_SHARE = 2e-4
 
 
 def log_histogram(
-    intensity: Float[Array, "H W"],
+    intensity: Float[Array, "H W"], weight: Float[Array, "H W"] | None = None
 ) -> tuple[Float[Array, " B"], Float[Array, " B"]]:
     """The frame's histogram of log intensity (every second pixel each way, 64 bins from one
-    8-bit step to 1, smoothed over five bins) and the bins' centres (log intensity)."""
+    8-bit step to 1, smoothed over five bins; each pixel counted with its ``weight``, 1 by
+    default) and the bins' centres (log intensity)."""
     log_i = jnp.log(jnp.clip(intensity[::2, ::2], 1.0 / 255.0, 1.0))
     scale = _HIST_BINS / -_LOG_I_MIN
     idx = jnp.clip(jnp.floor((log_i - _LOG_I_MIN) * scale).astype(jnp.int32), 0, _HIST_BINS - 1)
-    counts = jnp.zeros(_HIST_BINS, intensity.dtype).at[idx.ravel()].add(1.0)
+    w = jnp.ones_like(log_i) if weight is None else weight[::2, ::2]
+    counts = jnp.zeros(_HIST_BINS, intensity.dtype).at[idx.ravel()].add(w.ravel())
     kernel = jnp.asarray([1.0, 2.0, 3.0, 2.0, 1.0], intensity.dtype) / 9.0
     centres = _LOG_I_MIN + (jnp.arange(_HIST_BINS, dtype=intensity.dtype) + 0.5) / scale
     return jnp.convolve(counts, kernel, mode="same"), centres
@@ -146,6 +165,27 @@ def valley(
     n = jnp.sum(emptiest.astype(centres.dtype))
     middle = jnp.sum(jnp.where(emptiest, centres, 0.0)) / jnp.maximum(n, 1.0)
     return jnp.exp(jnp.where(jnp.any(inside), middle, hi))
+
+
+def deepest_valley(
+    hist: Float[Array, " B"],
+    centres: Float[Array, " B"],
+    lo: Float[Array, ""],
+    hi: Float[Array, ""],
+) -> Float[Array, ""]:
+    """The intensity threshold at the deepest valley between two populations of the histogram
+    within ``lo``-``hi`` (log intensity): the bin whose count lies furthest below the smaller of
+    the highest bins on either side of it in that range, relative to that smaller one, where
+    it is at least ``_VALLEY_DEPTH`` below and the smaller side holds at least
+    ``_VALLEY_MIN_SHARE`` of the pixels in one bin; ``exp(lo)`` where no bin is (one
+    population: nothing to part). Not differentiable."""
+    inside = (centres >= lo) & (centres <= hi)
+    h = jnp.where(inside, hist, 0.0)
+    side = jnp.minimum(jax.lax.cummax(h), jax.lax.cummax(h, reverse=True))
+    real = inside & (side >= _VALLEY_MIN_SHARE * jnp.sum(hist))
+    depth = jnp.where(real, (side - h) / jnp.maximum(side, 1e-9), 0.0)
+    best = jnp.argmax(depth)
+    return jnp.exp(jnp.where(depth[best] >= _VALLEY_DEPTH, centres[best], lo))
 
 
 def valley_depth(
@@ -222,8 +262,36 @@ class AdaptiveSegmenter(Segmenter):
             jnp.int32
         )
 
-    def grey_mask(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
-        """The intensity/chroma/texture mask alone (the branch for a wheel without colour)."""
+    def _edge(
+        self,
+        histogram: tuple[Array, Array],
+        i_w: Float[Array, ""],
+        dark: Bool[Array, ""],
+    ) -> Float[Array, ""]:
+        """The intensity threshold from a log-intensity ``histogram`` (bins, centres).
+
+        Black: the paper-style threshold p_a_int * I_w + int_floor (its shaded side is darker
+        still), or a valley below it. Metal: the histogram's valley below I_w (module
+        docstring), at most p_d_int * I_w."""
+        hist, centres = histogram
+        ceiling = self.p_d_int * i_w
+        found = valley(hist, centres, jnp.log(0.1 * i_w), jnp.log(ceiling), jnp.asarray(True))
+        # A black wheel: the paper-style threshold, or lower where the histogram has a valley
+        # between I_w and it (a cast shadow on the soil, darker than lit soil but brighter than
+        # the wheel, is its own population: the threshold goes between it and the wheel).
+        paper = self.p_a_int * i_w + self.int_floor
+        found_dark = valley(hist, centres, jnp.log(i_w), jnp.log(paper), jnp.asarray(False))
+        # Only a valley with a population beyond it (a shadow); on a wheel's own bright tail (a
+        # lamp's glow on the face) the emptiest bin means nothing.
+        deep = valley_depth(hist, centres, found_dark, _DARK_RISE_SPAN * paper) >= _DARK_RISE
+        found = jnp.where(dark, found_dark, found)
+        return jnp.where(dark & ~deep, paper, self.p_valley * jax.lax.stop_gradient(found))
+
+    def grey_mask(
+        self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc | None = None
+    ) -> Float[Array, "H W"]:
+        """The intensity/chroma/texture mask alone (the branch for a wheel without colour);
+        ``disc``: the inside of the recording's rim (:meth:`with_rim`), None: not known."""
         weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
         total = jnp.maximum(jnp.sum(weight), 1.0)
 
@@ -240,25 +308,12 @@ class AdaptiveSegmenter(Segmenter):
 
         i_w = rect_mean(intensity)
         # +1: the wheel is darker than the frame on average (black), -1: brighter (metal).
-        # Black: the paper-style threshold p_a_int * I_w + int_floor (its shaded side is darker
-        # still), or a valley below it. Metal: the histogram's valley below I_w (module
-        # docstring), at most p_d_int * I_w.
         dark = i_w <= jnp.mean(intensity)
         side = jnp.where(dark, 1.0, -1.0)
-        hist, centres = log_histogram(jax.lax.stop_gradient(intensity))
-        ceiling = self.p_d_int * i_w
-        found = valley(hist, centres, jnp.log(0.1 * i_w), jnp.log(ceiling), jnp.asarray(True))
-        # A black wheel: the paper-style threshold, or lower where the histogram has a valley
-        # between I_w and it (a cast shadow on the soil, darker than lit soil but brighter than
-        # the wheel, is its own population: the threshold goes between it and the wheel).
-        paper = self.p_a_int * i_w + self.int_floor
-        found_dark = valley(hist, centres, jnp.log(i_w), jnp.log(paper), jnp.asarray(False))
-        # Only a valley with a population beyond it (a shadow); on a wheel's own bright tail (a
-        # lamp's glow on the face) the emptiest bin means nothing.
-        deep = valley_depth(hist, centres, found_dark, _DARK_RISE_SPAN * paper) >= _DARK_RISE
-        found = jnp.where(dark, found_dark, found)
-        edge = jnp.where(dark & ~deep, paper, self.p_valley * jax.lax.stop_gradient(found))
-        m_int = jax.nn.sigmoid(side * (edge - intensity) / (self.t_int * edge))
+        still = jax.lax.stop_gradient(intensity)
+
+        def by_intensity(edge: Array) -> Array:
+            return jax.nn.sigmoid(side * (edge - intensity) / (self.t_int * edge))
 
         dq1, dq2 = q1 - rect_mean(q1), q2 - rect_mean(q2)
         spread_q = jnp.sqrt(rect_mean(dq1 * dq1 + dq2 * dq2) + 1e-12)
@@ -275,7 +330,36 @@ class AdaptiveSegmenter(Segmenter):
         # Only a bright wheel needs texture (grey sand can be as bright as shaded metal); on a
         # dark one it would only cut away the thin grousers.
         m_tex = jnp.where(dark, 1.0, jax.nn.sigmoid((limit_tex - tex) / self.t_tex))
-        return m_int * m_chroma * m_tex
+        mask = by_intensity(self._edge(log_histogram(still), i_w, dark)) * m_chroma * m_tex
+        if disc is None:
+            return mask
+        # A metal wheel: inside the recording's rim only wheel and soil can be, so the
+        # intensity threshold there comes from the histogram of the inside alone, at its
+        # deepest valley (between the wheel and the soil or its shadow), not from the
+        # background around the wheel (the wheel's shaded side can be as dark as a grey sky).
+        # Used only where that rule still calls the soil below the rim soil (chroma or texture
+        # part them): else, or with no soil below the rim in the frame to ask, the frame's own
+        # threshold stays. (A black wheel keeps it: its threshold already lies between it and
+        # anything brighter, sky or soil.)
+        rows = jnp.arange(intensity.shape[0], dtype=intensity.dtype)[:, None]
+        cols = jnp.arange(intensity.shape[1], dtype=intensity.dtype)[None, :]
+        cx, cy, rho = disc
+        inside = (cols - cx) ** 2 + (rows - cy) ** 2 < rho * rho
+        inside_px = inside.astype(intensity.dtype)
+        hist_in, centres = log_histogram(still, inside_px)
+        lo, hi = jnp.log(0.1 * i_w), jnp.log(self.p_d_int * i_w)
+        edge_in = self.p_valley * jax.lax.stop_gradient(deepest_valley(hist_in, centres, lo, hi))
+        mask_in = by_intensity(edge_in) * m_chroma * m_tex
+        below = jnp.broadcast_to(rows > cy + rho + _SOIL_GAP_PX, mask.shape)
+        below_px = jnp.sum(below.astype(mask.dtype))
+        soil_as_wheel = jnp.sum(jnp.where(below, mask_in, 0.0)) / jnp.maximum(below_px, 1.0)
+        use = (
+            ~dark
+            & (jnp.sum(inside_px) >= _MIN_DISC_PX)
+            & (below_px >= _MIN_DISC_PX)
+            & (jax.lax.stop_gradient(soil_as_wheel) <= _MAX_SOIL_AS_WHEEL)
+        )
+        return jnp.where(inside & use, mask_in, mask)
 
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         # lax.cond: per frame on a CPU only the branch taken runs (the grey features cost
@@ -286,6 +370,19 @@ class AdaptiveSegmenter(Segmenter):
             self.coloured(image, rect, hs),
             lambda: wheel_mask(image, self.seg, rect, hs=hs),
             lambda: self.grey_mask(image, rect),
+        )
+
+    def uses_rim(self, features: int) -> bool:
+        return features == FEATURES_INTENSITY  # the H/S mask does not use the rim
+
+    def with_rim(self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc) -> Float[Array, "H W"]:
+        # A coloured wheel's H/S mask does not change; a grey one's intensity threshold inside
+        # the rim comes from the inside alone (grey_mask).
+        hs = rgb_to_hsi(image)[:2]
+        return jax.lax.cond(
+            self.coloured(image, rect, hs),
+            lambda: wheel_mask(image, self.seg, rect, hs=hs),
+            lambda: self.grey_mask(image, rect, disc),
         )
 
 

@@ -3,7 +3,8 @@
 :class:`SoftRecording` is what the pipeline runs for one recording. The first batch of frames of
 an image size is measured with each frame's own rim; their circles vote for the recording's rim
 (``soft.rim.combine_rims``), and the same prepared frames are then finished again with that rim
-held as a strong prior, as is every later frame: a stream is read once, and the output depends
+held as a strong prior (segmented again first where the segmenter uses the rim:
+``Segmenter.with_rim``), as is every later frame: a stream is read once, and the output depends
 only on the frames, never on how a run was cut into tasks. ``estimate_batch`` is the same for a
 list of frames taken as one recording.
 """
@@ -47,7 +48,7 @@ def _prepare_u8(
     # choice of features is computed here too (the run summary reports it; the default
     # segmenter's choice shares its colour statistics with the mask under jit).
     image = _float(image_u8)
-    mask = segmenter(image, rig.rect_px)
+    mask = segmenter.with_rim(image, rig.rect_px, rim.disc())
     features = segmenter.features(image, rig.rect_px)
     return prepare(image, mask, rim, None, rig.rim_range_px, features)
 
@@ -230,7 +231,7 @@ class SoftRecording:
         rim = self.rims[(height, width)] = _vote(out, k)
         if float(rim.use) < 0.5:
             return out
-        return run.finish(images, run.rechoose(prepared, rim))
+        return run.finish(images, run.with_rim(images, prepared, rim))
 
 
 class _Run:
@@ -285,6 +286,23 @@ class _Run:
     def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
         fn = self._fn("rechoose", (prepared[0], rim))
         return [fn(p, rim) for p in prepared]
+
+    def with_rim(
+        self, images: list[np.ndarray], prepared: list[Prepared], rim: RecordingRim
+    ) -> list[Prepared]:
+        """``prepared`` (made before ``rim`` was known) as :meth:`prepare` with ``rim`` makes
+        them: frames whose mask the segmenter makes with the rim (``Segmenter.uses_rim``) are
+        segmented again, the others keep their outline and only choose the rim."""
+        codes = np.concatenate([np.ravel(np.asarray(p.features)) for p in prepared])
+        again = [self.segmenter.uses_rim(int(c)) for c in codes[: len(images)]]
+        if not any(again):
+            return self.rechoose(prepared, rim)
+        if self.vmap:  # one padded batch: segment it all again
+            return self.prepare(images, rim)
+        redo = iter(self.prepare([im for im, a in zip(images, again, strict=True) if a], rim))
+        kept = [p for p, a in zip(prepared, again, strict=True) if not a]
+        keep = iter(self.rechoose(kept, rim) if kept else [])
+        return [next(redo) if a else next(keep) for a in again]
 
     def finish(self, images: list[np.ndarray], prepared: list[Prepared]) -> SoftEstimate:
         frames = self._frames(images)

@@ -73,7 +73,8 @@ class Prepared(eqx.Module):
     """A frame up to its rim choice (the first half of the method): the soft mask, its outline,
     and the rim to measure with (with the frame's own rim, where it was searched). Kept between
     the halves so that the first frames of a recording, measured once with their own rims to
-    find the recording's, are not segmented twice. ``features``: which features made the mask
+    find the recording's, are not segmented twice where their masks do not depend on the rim
+    (``Segmenter.uses_rim``). ``features``: which features made the mask
     (a ``FEATURES_*`` code), passed on to the :class:`SoftEstimate`."""
 
     mask: Float[Array, "H W"]
@@ -238,7 +239,7 @@ def measure(
     Never raises for image content: problems are reported in ``status``.
     """
     segmenter = default_segmenter(seg) if segmenter is None else segmenter
-    mask = segmenter(image, rect)
+    mask = segmenter(image, rect) if rim is None else segmenter.with_rim(image, rect, rim.disc())
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
     return measure_from_mask(

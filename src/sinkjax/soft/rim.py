@@ -71,6 +71,12 @@ class RecordingRim(eqx.Module):
         dt = jax.dtypes.canonicalize_dtype(jnp.float64)
         return RecordingRim(*(jnp.asarray(x, dt) for x in (0.0, 0.0, 1.0, 1.0, 0.0)))
 
+    def disc(self) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
+        """The inside of the rim, (cx, cy, radius) px, up to the rim itself (a mask that
+        changes its rule short of the rim would draw an edge of its own inside it); radius 0
+        where the rim is not used."""
+        return self.cx_px, self.cy_px, jnp.where(self.use > 0.5, self.r_px, 0.0)
+
     def describe(self) -> str:
         if float(self.use) < 0.5:
             return "per-frame rim"

@@ -26,6 +26,9 @@ from ..result import (
 from ..rig import SegmentationParams, rect_problem
 from .segmentation import Rect, wheel_mask
 
+# The inside of a recording's rim: (cx, cy, radius) px, radius 0 where no rim is known.
+Disc = tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]
+
 # The FEATURES_* codes that Segmenter.features reports, and FEATURE_CHOICES their names, live in
 # sinkjax.result (the classic method and the run summary use them too); re-exported here.
 
@@ -59,6 +62,22 @@ class Segmenter(eqx.Module):
     @abc.abstractmethod
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         raise NotImplementedError
+
+    def with_rim(self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc) -> Float[Array, "H W"]:
+        """The mask when the recording's rim is known: ``disc`` (cx, cy, radius px; traced)
+        is the inside of the rim, where only wheel and soil can be (radius 0: no rim known).
+        A segmenter may use it (:class:`~sinkjax.soft.adaptive.AdaptiveSegmenter` does for a
+        wheel without colour, and says so with :meth:`uses_rim`); by default the mask ignores
+        it."""
+        del disc
+        return self(image, rect)
+
+    def uses_rim(self, features: int) -> bool:
+        """Whether :meth:`with_rim` may differ from the plain mask for a frame whose
+        :meth:`features` are ``features``: a recording's first frames, segmented before its
+        rim is known, are segmented again only then. False unless a segmenter overrides it."""
+        del features
+        return False
 
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
         """Which features separate wheel from soil in this frame (a ``FEATURES_*`` code of
