@@ -231,7 +231,8 @@ def measure(
     are the method's tuning settings, array leaves (not static: a new value does not recompile).
     ``rim_range_px``: the rim radii to search (px; may be traced), None for the default
     fractions of the image size. ``rim``: the recording's rim circle (``soft.rim``; traced), held
-    as a strong prior; None: the frame's own rim. ``segmenter`` (a
+    as a strong prior, and given to the segmenter (``Segmenter.with_rim``); None: the frame's own
+    rim. ``segmenter`` (a
     :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the default with the
     thresholds ``seg`` (:func:`~sinkjax.soft.adaptive.default_segmenter`: the paper's H/S test
     on a coloured wheel, intensity/chroma/texture on a black one); which features it chose is
