@@ -226,10 +226,10 @@ def calibrate(
     descent keeps its best point, goes back there with half the step size after a step that
     more than doubles the loss (frames stopped measuring) and stops after ``patience`` steps
     without improvement. With ``augment`` each step's gradient averages the frames as labelled
-    and under a random lighting change; ``steps=0``: the grid search alone
-    (no gradient is compiled). The result's ``checks`` say whether the last descent converged,
-    which frames disagree with the rest, and the leave-one-out error. ``losses`` is the final
-    descent's loss per step (from its starting point).
+    and under a random lighting change; ``steps=0``: the grid search alone (no gradient is
+    compiled). The result's ``checks`` say whether the last descent converged, which frames
+    disagree with the rest, and the leave-one-out error. ``losses`` is the final descent's loss
+    per step (from its starting point).
     ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
     ``sinkjax estimate`` measures them: their rim circle is found once, from the frames
     themselves with ``rig``'s thresholds (:class:`~sinkjax.soft.batch.SoftRecording`), and every
