@@ -179,6 +179,25 @@ def test_rig_problems_stop_before_work(
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_steps_zero_is_passed_on_and_negative_steps_are_refused(
+    small_set: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    labels = write_labels(small_set, [["a.png", "1", "2", "3"]])
+    seen: list[int] = []
+
+    def stop(frames: object, rig: object, *, steps: int, **kwargs: object) -> None:
+        seen.append(steps)
+        raise KeyboardInterrupt  # enough: the CLI got this far (it says "interrupted")
+
+    monkeypatch.setattr(calibration_cli, "calibrate", stop)
+    out = str(small_set / "o.toml")
+    assert main(["calibrate", str(labels), "--out", out, "--steps", "0"]) != 0
+    assert seen == [0]
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(labels), "--out", out, "--steps", "-1"])
+    assert "must be 0 (the grid search alone) or more" in capsys.readouterr().err
+
+
 def test_labels_read_with_extra_columns_and_empty_cells(small_set: Path) -> None:
     path = small_set / "LABELS.csv"
     path.write_text(
@@ -549,6 +568,8 @@ def test_zero_steps_is_the_grid_search_alone_without_a_gradient(
     monkeypatch.setattr(O, "loss_and_grad", no_gradient)
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=0)
     assert res.losses == (res.loss_after,) and res.best_step == 0
+    assert res.checks is not None and res.checks.converged
+    assert "grid search alone" in res.summary() and "converged: the loss" not in res.summary()
     # The lowest point of the grid (the rig's own point is not on it), scored as with steps.
     assert res.loss_after == pytest.approx(res.grid_best_loss, rel=1e-12)
     assert res.loss_after < res.loss_before

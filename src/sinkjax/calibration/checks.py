@@ -101,7 +101,9 @@ def run_checks(
     targets = np.asarray(frames.targets, float)
     cells = np.maximum(np.isfinite(targets).sum(1), 1)
     losses = np.stack(frame_losses)  # (P, N)
-    if stopped_early:
+    if len(last_losses) <= 1:
+        converged, note = True, "the grid search alone (no descent: --steps 0)"
+    elif stopped_early:
         converged, note = True, "converged: no better loss for the last steps"
     else:
         best = np.minimum.accumulate(np.asarray(last_losses, float))

@@ -31,7 +31,12 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--out", required=True, metavar="CALIBRATED.toml", help="rig file to write")
     p.add_argument(
-        "--steps", type=_positive_int, default=50, metavar="N", help="Adam steps (default: 50)"
+        "--steps",
+        type=_steps,
+        default=50,
+        metavar="N",
+        help="Adam steps after the grid search (default: 50; 0: the grid search alone, which "
+        "compiles no gradient and is faster)",
     )
     p.add_argument(
         "--augment",
@@ -49,6 +54,13 @@ def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _steps(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 (the grid search alone) or more, got {value}")
     return value
 
 
