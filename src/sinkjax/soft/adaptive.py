@@ -341,25 +341,29 @@ class AdaptiveSegmenter(Segmenter):
         # part them): else, or with no soil below the rim in the frame to ask, the frame's own
         # threshold stays. (A black wheel keeps it: its threshold already lies between it and
         # anything brighter, sky or soil.)
-        rows = jnp.arange(intensity.shape[0], dtype=intensity.dtype)[:, None]
-        cols = jnp.arange(intensity.shape[1], dtype=intensity.dtype)[None, :]
         cx, cy, rho = disc
-        inside = (cols - cx) ** 2 + (rows - cy) ** 2 < rho * rho
-        inside_px = inside.astype(intensity.dtype)
-        hist_in, centres = log_histogram(still, inside_px)
-        lo, hi = jnp.log(0.1 * i_w), jnp.log(self.p_d_int * i_w)
-        edge_in = self.p_valley * jax.lax.stop_gradient(deepest_valley(hist_in, centres, lo, hi))
-        mask_in = by_intensity(edge_in) * m_chroma * m_tex
-        below = jnp.broadcast_to(rows > cy + rho + _SOIL_GAP_PX, mask.shape)
-        below_px = jnp.sum(below.astype(mask.dtype))
-        soil_as_wheel = jnp.sum(jnp.where(below, mask_in, 0.0)) / jnp.maximum(below_px, 1.0)
-        use = (
-            ~dark
-            & (jnp.sum(inside_px) >= _MIN_DISC_PX)
-            & (below_px >= _MIN_DISC_PX)
-            & (jax.lax.stop_gradient(soil_as_wheel) <= _MAX_SOIL_AS_WHEEL)
-        )
-        return jnp.where(inside & use, mask_in, mask)
+
+        def inside_rule() -> Array:
+            rows = jnp.arange(intensity.shape[0], dtype=intensity.dtype)[:, None]
+            cols = jnp.arange(intensity.shape[1], dtype=intensity.dtype)[None, :]
+            inside = (cols - cx) ** 2 + (rows - cy) ** 2 < rho * rho
+            inside_px = inside.astype(intensity.dtype)
+            hist_in, centres = log_histogram(still, inside_px)
+            lo, hi = jnp.log(0.1 * i_w), jnp.log(self.p_d_int * i_w)
+            valley_in = jax.lax.stop_gradient(deepest_valley(hist_in, centres, lo, hi))
+            mask_in = by_intensity(self.p_valley * valley_in) * m_chroma * m_tex
+            below = jnp.broadcast_to(rows > cy + rho + _SOIL_GAP_PX, mask.shape)
+            below_px = jnp.sum(below.astype(mask.dtype))
+            soil_as_wheel = jnp.sum(jnp.where(below, mask_in, 0.0)) / jnp.maximum(below_px, 1.0)
+            use = (
+                (jnp.sum(inside_px) >= _MIN_DISC_PX)
+                & (below_px >= _MIN_DISC_PX)
+                & (jax.lax.stop_gradient(soil_as_wheel) <= _MAX_SOIL_AS_WHEEL)
+            )
+            return jnp.where(inside & use, mask_in, mask)
+
+        # Skipped (not computed) for a black wheel and where no rim is known (radius 0).
+        return jax.lax.cond(dark | (rho <= 0.0), lambda: mask, inside_rule)
 
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         # lax.cond: per frame on a CPU only the branch taken runs (the grey features cost
