@@ -10,14 +10,8 @@ import pytest
 
 from sinkjax import Status, estimate_classic, synth
 from sinkjax.rig import SegmentationParams
-from sinkjax.soft.adaptive import (
-    AdaptiveSegmenter,
-    deepest_valley,
-    log_histogram,
-    texture,
-    valley,
-    valley_depth,
-)
+from sinkjax.soft.adaptive import AdaptiveSegmenter, texture
+from sinkjax.soft.histogram import deepest_valley, log_histogram, log_quantile, valley, valley_depth
 from sinkjax.soft.segmentation import wheel_mask
 from sinkjax.soft.segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY
 from sinkjax.synth.layers import WHEEL_LAYERS, coverage
@@ -135,7 +129,9 @@ def test_deepest_valley_parts_a_small_dark_population_from_a_long_tail() -> None
         img = values[: values.size // 100 * 100].reshape(-1, 100)
         img = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)  # the histogram takes every 2nd px
         hist, centres = log_histogram(jnp.asarray(img))
-        t = float(deepest_valley(hist, centres, jnp.asarray(lo), jnp.asarray(hi)))
+        found_t, found = deepest_valley(hist, centres, jnp.asarray(lo), jnp.asarray(hi))
+        t = float(found_t)
+        assert bool(found) == expect_gap
         log_i = np.log(np.clip(img[::2, ::2], 1 / 255, 1))
         counts, edges = np.histogram(log_i, 64, (np.log(1 / 255), 0))
         smooth = np.convolve(counts, np.array([1, 2, 3, 2, 1]) / 9, mode="same")
@@ -190,6 +186,46 @@ def test_rim_inside_rule_against_rendered_truth() -> None:
             # Outside the rim nothing changes (the background is still told from the wheel).
             np.testing.assert_array_equal(a[~inside], b[~inside])
     assert max(gains) > 0.05 and np.mean(gains) > 0.01
+
+
+def testlog_quantile_matches_numpy() -> None:
+    # The histogram's quantile against numpy's on the same (every second) pixels: within the
+    # five-bin smoothing's reach.
+    rng = np.random.default_rng(4)
+    img = np.exp(rng.normal(np.log(0.3), 0.4, (200, 300))).clip(1 / 255, 1)
+    hist, centres = log_histogram(jnp.asarray(img))
+    bin_width = float(centres[1] - centres[0])
+    for q in (0.1, 0.5, 0.9):
+        got = float(log_quantile(hist, centres, q))
+        assert got == pytest.approx(np.quantile(np.log(img[::2, ::2]), q), abs=1.5 * bin_width)
+
+
+def test_soil_as_bright_as_the_shaded_side_is_parted_by_the_soil_below() -> None:
+    """A metal wheel over grey sand nearly as bright as its shaded side (the frame's threshold
+    and the rim's first search both call the sand wheel): the threshold between the soil below
+    the rim and the wheel, used inside the rim and beyond it, gives the renderer's exact wheel
+    over the whole frame; the inside stays as good."""
+    seg = AdaptiveSegmenter()
+    plain = jax.jit(lambda x, r: seg(x, r))
+    with_rim = jax.jit(lambda x, r, d: seg.with_rim(x, r, d))
+    for seed in (9000, 11000):
+        rng = np.random.default_rng(seed)
+        sc = synth.recording_scenes(rng, 1, preset="metal_wheel", width=320, height=240)[0]
+        img, t = synth.render(sc, seed)
+        x = jnp.asarray(img, jnp.float64) / 255.0
+        rect = jnp.asarray(synth.rig_for(sc).confidence_rect)
+        truth = coverage(sc)[..., list(WHEEL_LAYERS)].sum(-1) > 0.5
+        yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
+        inside = (xx - t.center_x_px) ** 2 + (yy - t.center_y_px) ** 2 < t.radius_px**2
+        disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
+        a = np.asarray(plain(x, rect)) > 0.5
+        b = np.asarray(with_rim(x, rect, disc)) > 0.5
+        frame = np.ones_like(inside)
+        assert _iou(a, truth, frame) < 0.6  # the sand taken for wheel
+        assert _iou(b, truth, frame) > 0.8, seed
+        assert _iou(b, truth, inside) >= _iou(a, truth, inside) - 0.02, seed
+        below = yy > t.center_y_px + t.radius_px + 2
+        assert b[below].mean() < 0.05 < a[below].mean()
 
 
 @pytest.mark.parametrize(

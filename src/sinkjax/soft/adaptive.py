@@ -35,11 +35,15 @@ With the recording's rim known (:meth:`AdaptiveSegmenter.with_rim`, which the so
 once a recording's rim is found), a metal wheel's intensity threshold inside the rim comes from
 the inside's own histogram: only wheel and soil can be there, not the background, so the
 threshold goes to the deepest valley between the wheel (its shaded side included, however dark)
-and the soil or its shadow (:func:`deepest_valley`; none: all of the inside passes the
-intensity test and chroma and texture alone part wheel from soil). It is used only where that
-rule still calls the soil below the rim (the frame's bottom rows under the circle) soil; else the
-frame's own threshold stays. A black wheel's threshold already lies between it and anything
-brighter, sky or soil, and does not change.
+and the soil or its shadow (:func:`~sinkjax.soft.histogram.deepest_valley`; none: all of the
+inside passes the intensity test and chroma and texture alone part wheel from soil). It is used
+only where that rule still calls the soil below the rim (the frame's bottom rows under the
+circle) soil. Else, for a lit soil nearly as bright as the wheel's shaded side (grey sand), the
+threshold goes to the valley between the soil below the rim and the wheel, in the histogram of
+both (searched from the soil's median up to I_w), inside the rim and beyond it (no lower than
+the frame's own there), where that calls the soil below soil; else the frame's own threshold
+stays. A black wheel's threshold already lies between it and anything brighter, sky or soil, and
+does not change.
 
 The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
@@ -55,6 +59,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
+from .histogram import deepest_valley, log_histogram, log_quantile, valley, valley_depth
 from .segmentation import HueSat, Rect, smooth, wheel_mask
 from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, rect_weight
 
@@ -107,100 +112,16 @@ def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
 
 
-_HIST_BINS = 64
 # A black wheel's threshold moves down to a valley of the histogram only where the population
 # beyond it (up to this factor past the paper-style threshold) outnumbers the valley's bin by
 # at least this much: a cast shadow on the soil, not the wheel's own glow.
 _DARK_RISE = 2.0
 _DARK_RISE_SPAN = 1.3
-_LOG_I_MIN = float(np.log(1.0 / 255.0))  # one 8-bit step: the darkest intensity binned
-# The inside of a recording's rim sets its own threshold only with this many pixels in it, at
-# a valley at least this deep (relative) between populations of at least this share per bin.
+# The inside of a recording's rim sets its own threshold only with this many pixels in it (and
+# as many in the soil below the rim to check it on).
 _MIN_DISC_PX = 400.0
 _SOIL_GAP_PX = 2.0  # the soil asked: below the rim, this far clear of it (its edge blur)
 _MAX_SOIL_AS_WHEEL = 0.05  # the inside's rule is kept if it calls at most this share wheel
-_VALLEY_DEPTH = 0.25
-_VALLEY_MIN_SHARE = 2e-4
-
-
-def log_histogram(
-    intensity: Float[Array, "H W"], weight: Float[Array, "H W"] | None = None
-) -> tuple[Float[Array, " B"], Float[Array, " B"]]:
-    """The frame's histogram of log intensity (every second pixel each way, 64 bins from one
-    8-bit step to 1, smoothed over five bins; each pixel counted with its ``weight``, 1 by
-    default) and the bins' centres (log intensity)."""
-    log_i = jnp.log(jnp.clip(intensity[::2, ::2], 1.0 / 255.0, 1.0))
-    scale = _HIST_BINS / -_LOG_I_MIN
-    idx = jnp.clip(jnp.floor((log_i - _LOG_I_MIN) * scale).astype(jnp.int32), 0, _HIST_BINS - 1)
-    w = jnp.ones_like(log_i) if weight is None else weight[::2, ::2]
-    counts = jnp.zeros(_HIST_BINS, intensity.dtype).at[idx.ravel()].add(w.ravel())
-    kernel = jnp.asarray([1.0, 2.0, 3.0, 2.0, 1.0], intensity.dtype) / 9.0
-    centres = _LOG_I_MIN + (jnp.arange(_HIST_BINS, dtype=intensity.dtype) + 0.5) / scale
-    return jnp.convolve(counts, kernel, mode="same"), centres
-
-
-def valley(
-    hist: Float[Array, " B"],
-    centres: Float[Array, " B"],
-    lo: Float[Array, ""],
-    hi: Float[Array, ""],
-    bright: Bool[Array, ""],
-) -> Float[Array, ""]:
-    """The intensity threshold in the histogram's valley between the wheel and the background.
-
-    ``lo``, ``hi`` (log intensity) bound the search. The background's population is the
-    histogram's highest peak on the background's side (below ``hi`` for a ``bright`` wheel,
-    above ``lo`` for a dark one); the search stops there, so that the valley found lies between
-    the wheel and the background nearest to it. The threshold is the middle of the emptiest
-    bins (within 0.001 % of the pixels of the minimum: ties); ``exp(hi)`` when the range holds
-    no bin. Not differentiable (a choice of bin). :class:`AdaptiveSegmenter` searches the bright
-    side (a metal wheel)."""
-    beyond = jnp.where(bright, centres < hi, centres > lo)
-    mode = centres[jnp.argmax(jnp.where(beyond, hist, -1.0))]
-    a = jnp.where(bright, jnp.maximum(mode, lo), lo)
-    b = jnp.where(bright, hi, jnp.minimum(mode, hi))
-    inside = (centres >= a) & (centres <= b)
-    lowest = jnp.min(jnp.where(inside, hist, jnp.inf))
-    emptiest = inside & (hist <= lowest + 1e-5 * jnp.sum(hist))
-    n = jnp.sum(emptiest.astype(centres.dtype))
-    middle = jnp.sum(jnp.where(emptiest, centres, 0.0)) / jnp.maximum(n, 1.0)
-    return jnp.exp(jnp.where(jnp.any(inside), middle, hi))
-
-
-def deepest_valley(
-    hist: Float[Array, " B"],
-    centres: Float[Array, " B"],
-    lo: Float[Array, ""],
-    hi: Float[Array, ""],
-) -> Float[Array, ""]:
-    """The intensity threshold at the deepest valley between two populations of the histogram
-    within ``lo``-``hi`` (log intensity): the bin whose count lies furthest below the smaller of
-    the highest bins on either side of it in that range, relative to that smaller one, where
-    it is at least ``_VALLEY_DEPTH`` below and the smaller side holds at least
-    ``_VALLEY_MIN_SHARE`` of the pixels in one bin; ``exp(lo)`` where no bin is (one
-    population: nothing to part). Not differentiable."""
-    inside = (centres >= lo) & (centres <= hi)
-    h = jnp.where(inside, hist, 0.0)
-    side = jnp.minimum(jax.lax.cummax(h), jax.lax.cummax(h, reverse=True))
-    real = inside & (side >= _VALLEY_MIN_SHARE * jnp.sum(hist))
-    depth = jnp.where(real, (side - h) / jnp.maximum(side, 1e-9), 0.0)
-    best = jnp.argmax(depth)
-    return jnp.exp(jnp.where(depth[best] >= _VALLEY_DEPTH, centres[best], lo))
-
-
-def valley_depth(
-    hist: Float[Array, " B"],
-    centres: Float[Array, " B"],
-    at: Float[Array, ""],
-    top: Float[Array, ""],
-) -> Float[Array, ""]:
-    """How many times the histogram's highest bin between intensity ``at`` and ``top`` outnumbers
-    the bin at ``at``: above 1 where a population rises beyond the valley, 1 on a falling tail."""
-    log_at = jnp.log(at)
-    i = jnp.argmin(jnp.abs(centres - log_at))
-    span = (centres >= log_at) & (centres <= jnp.log(top))
-    peak = jnp.max(jnp.where(span, hist, 0.0))
-    return peak / jnp.maximum(hist[i], 1e-9)
 
 
 def wheel_chroma(
@@ -330,7 +251,8 @@ class AdaptiveSegmenter(Segmenter):
         # Only a bright wheel needs texture (grey sand can be as bright as shaded metal); on a
         # dark one it would only cut away the thin grousers.
         m_tex = jnp.where(dark, 1.0, jax.nn.sigmoid((limit_tex - tex) / self.t_tex))
-        mask = by_intensity(self._edge(log_histogram(still), i_w, dark)) * m_chroma * m_tex
+        edge = self._edge(log_histogram(still), i_w, dark)
+        mask = by_intensity(edge) * m_chroma * m_tex
         if disc is None:
             return mask
         # A metal wheel: inside the recording's rim only wheel and soil can be, so the
@@ -338,7 +260,12 @@ class AdaptiveSegmenter(Segmenter):
         # deepest valley (between the wheel and the soil or its shadow), not from the
         # background around the wheel (the wheel's shaded side can be as dark as a grey sky).
         # Used only where that rule still calls the soil below the rim soil (chroma or texture
-        # part them): else, or with no soil below the rim in the frame to ask, the frame's own
+        # part them). Else the valley between the soil below the rim and the wheel, in the
+        # histogram of both: a lit soil nearly as bright as the wheel's shaded side (grey
+        # sand) lies above the first search's top, and so does the valley that parts it from
+        # the wheel; that threshold holds beyond the rim too (the same soil), where the frame's
+        # own is not higher (a background brighter than the soil). Used where it calls the soil
+        # below soil; else, or with no soil below the rim in the frame to ask, the frame's own
         # threshold stays. (A black wheel keeps it: its threshold already lies between it and
         # anything brighter, sky or soil.)
         cx, cy, rho = disc
@@ -348,19 +275,27 @@ class AdaptiveSegmenter(Segmenter):
             cols = jnp.arange(intensity.shape[1], dtype=intensity.dtype)[None, :]
             inside = (cols - cx) ** 2 + (rows - cy) ** 2 < rho * rho
             inside_px = inside.astype(intensity.dtype)
-            hist_in, centres = log_histogram(still, inside_px)
-            lo, hi = jnp.log(0.1 * i_w), jnp.log(self.p_d_int * i_w)
-            valley_in = jax.lax.stop_gradient(deepest_valley(hist_in, centres, lo, hi))
-            mask_in = by_intensity(self.p_valley * valley_in) * m_chroma * m_tex
             below = jnp.broadcast_to(rows > cy + rho + _SOIL_GAP_PX, mask.shape)
             below_px = jnp.sum(below.astype(mask.dtype))
-            soil_as_wheel = jnp.sum(jnp.where(below, mask_in, 0.0)) / jnp.maximum(below_px, 1.0)
-            use = (
-                (jnp.sum(inside_px) >= _MIN_DISC_PX)
-                & (below_px >= _MIN_DISC_PX)
-                & (jax.lax.stop_gradient(soil_as_wheel) <= _MAX_SOIL_AS_WHEEL)
-            )
-            return jnp.where(inside & use, mask_in, mask)
+            enough = (jnp.sum(inside_px) >= _MIN_DISC_PX) & (below_px >= _MIN_DISC_PX)
+
+            def with_edge(found: Array) -> tuple[Array, Array]:
+                # The mask at this threshold, and whether it calls the soil below the rim soil.
+                m = by_intensity(self.p_valley * jax.lax.stop_gradient(found)) * m_chroma * m_tex
+                wheel_below = jnp.sum(jnp.where(below, m, 0.0)) / jnp.maximum(below_px, 1.0)
+                return m, enough & (jax.lax.stop_gradient(wheel_below) <= _MAX_SOIL_AS_WHEEL)
+
+            hist_in, centres = log_histogram(still, inside_px)
+            lo, hi = jnp.log(0.1 * i_w), jnp.log(self.p_d_int * i_w)
+            mask_in, use_in = with_edge(deepest_valley(hist_in, centres, lo, hi)[0])
+            hist_below, _ = log_histogram(still, below.astype(intensity.dtype))
+            soil = log_quantile(hist_below, centres, 0.5)
+            found, parted = deepest_valley(hist_in + hist_below, centres, soil, jnp.log(i_w))
+            mask_soil, use_soil = with_edge(found)
+            beyond = by_intensity(jnp.maximum(edge, self.p_valley * jax.lax.stop_gradient(found)))
+            mask_soil = jnp.where(inside, mask_soil, beyond * m_chroma * m_tex)
+            out = jnp.where(inside & use_in, mask_in, mask)
+            return jnp.where(~use_in & parted & use_soil, mask_soil, out)
 
         # Skipped (not computed) for a black wheel and where no rim is known (radius 0).
         return jax.lax.cond(dark | (rho <= 0.0), lambda: mask, inside_rule)
