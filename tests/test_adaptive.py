@@ -154,29 +154,36 @@ def _iou(mask: np.ndarray, truth: np.ndarray, where: np.ndarray) -> float:
     return float((mask & truth & where).sum() / ((mask | truth) & where).sum())
 
 
+_SEG = AdaptiveSegmenter()
+_plain = jax.jit(lambda x, r: _SEG(x, r))
+_with_rim = jax.jit(lambda x, r, d: _SEG.with_rim(x, r, d))
+
+
+def _masks_with_and_without_rim(preset: str, seed: int) -> tuple[np.ndarray, ...]:
+    """One rendered 320x240 frame: the default mask without and with its exact rim (> 0.5), the
+    renderer's exact wheel mask, and the inside of the rim."""
+    rng = np.random.default_rng(seed)
+    sc = synth.recording_scenes(rng, 1, preset=preset, width=320, height=240)[0]
+    img, t = synth.render(sc, seed)
+    x = jnp.asarray(img, jnp.float64) / 255.0
+    rect = jnp.asarray(synth.rig_for(sc).confidence_rect)
+    truth = coverage(sc)[..., list(WHEEL_LAYERS)].sum(-1) > 0.5
+    yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
+    inside = (xx - t.center_x_px) ** 2 + (yy - t.center_y_px) ** 2 < t.radius_px**2
+    disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
+    a = np.asarray(_plain(x, rect)) > 0.5
+    b = np.asarray(_with_rim(x, rect, disc)) > 0.5
+    return a, b, truth, inside
+
+
 def test_rim_inside_rule_against_rendered_truth() -> None:
     """With the rim known, a metal wheel's mask inside it matches the renderer's exact wheel at
     least as well as without (much better where the shaded side fades into a grey sky), and a
     black wheel's mask does not change (its threshold already parts it from sky and soil)."""
-    seg = AdaptiveSegmenter()
-    plain = jax.jit(lambda x, r: seg(x, r))
-    with_rim = jax.jit(lambda x, r, d: seg.with_rim(x, r, d))
     gains = []
     for preset in ("hard_metal", "metal_wheel", "black_wheel"):
         for seed in range(6):
-            rng = np.random.default_rng(seed)
-            sc = synth.recording_scenes(rng, 1, preset=preset, width=320, height=240)[0]
-            img, t = synth.render(sc, seed)
-            rig = synth.rig_for(sc)
-            x = jnp.asarray(img, jnp.float64) / 255.0
-            rect = jnp.asarray(rig.confidence_rect)
-            truth = coverage(sc)[..., list(WHEEL_LAYERS)].sum(-1) > 0.5
-            yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
-            inside = (xx - t.center_x_px) ** 2 + (yy - t.center_y_px) ** 2 < t.radius_px**2
-            disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
-            a = np.asarray(plain(x, rect)) > 0.5
-            b = np.asarray(with_rim(x, rect, disc)) > 0.5
-
+            a, b, truth, inside = _masks_with_and_without_rim(preset, seed)
             if preset == "black_wheel":
                 np.testing.assert_array_equal(a, b)
                 continue
@@ -188,7 +195,7 @@ def test_rim_inside_rule_against_rendered_truth() -> None:
     assert max(gains) > 0.05 and np.mean(gains) > 0.01
 
 
-def testlog_quantile_matches_numpy() -> None:
+def test_log_quantile_matches_numpy() -> None:
     # The histogram's quantile against numpy's on the same (every second) pixels: within the
     # five-bin smoothing's reach.
     rng = np.random.default_rng(4)
@@ -205,26 +212,16 @@ def test_soil_as_bright_as_the_shaded_side_is_parted_by_the_soil_below() -> None
     and the rim's first search both call the sand wheel): the threshold between the soil below
     the rim and the wheel, used inside the rim and beyond it, gives the renderer's exact wheel
     over the whole frame; the inside stays as good."""
-    seg = AdaptiveSegmenter()
-    plain = jax.jit(lambda x, r: seg(x, r))
-    with_rim = jax.jit(lambda x, r, d: seg.with_rim(x, r, d))
     for seed in (9000, 11000):
-        rng = np.random.default_rng(seed)
-        sc = synth.recording_scenes(rng, 1, preset="metal_wheel", width=320, height=240)[0]
-        img, t = synth.render(sc, seed)
-        x = jnp.asarray(img, jnp.float64) / 255.0
-        rect = jnp.asarray(synth.rig_for(sc).confidence_rect)
-        truth = coverage(sc)[..., list(WHEEL_LAYERS)].sum(-1) > 0.5
-        yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
-        inside = (xx - t.center_x_px) ** 2 + (yy - t.center_y_px) ** 2 < t.radius_px**2
-        disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
-        a = np.asarray(plain(x, rect)) > 0.5
-        b = np.asarray(with_rim(x, rect, disc)) > 0.5
+        a, b, truth, inside = _masks_with_and_without_rim("metal_wheel", seed)
         frame = np.ones_like(inside)
         assert _iou(a, truth, frame) < 0.6  # the sand taken for wheel
         assert _iou(b, truth, frame) > 0.8, seed
         assert _iou(b, truth, inside) >= _iou(a, truth, inside) - 0.02, seed
-        below = yy > t.center_y_px + t.radius_px + 2
+        # The soil below the rim: rows clear of the rim's lowest by 2 px.
+        last = np.nonzero(inside.any(axis=1))[0].max()
+        below = np.arange(inside.shape[0])[:, None] > last + 2
+        below = np.broadcast_to(below, inside.shape)
         assert b[below].mean() < 0.05 < a[below].mean()
 
 
