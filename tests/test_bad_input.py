@@ -62,3 +62,37 @@ def test_rig_with_bom_and_misspelt_key(tmp_path):
     (tmp_path / "veto.toml").write_text(good + "[segmentation]\nveto_fraction = -0.1\n")
     with pytest.raises(RigError, match="veto_fraction must be >= 0"):
         load_rig(tmp_path / "veto.toml")
+
+
+def test_overexposed_confidence_rectangle_is_named_in_the_message(tmp_path):
+    """A rectangle over a blown-out glow: the frame's message says so (and what to do); the
+    same frame with the rectangle on the wheel's face carries no such hint."""
+    from sinkjax import synth
+    from sinkjax.rig import rect_overexposed
+
+    rng = np.random.default_rng(3)
+    scene = synth.recording_scenes(rng, 1, width=320, height=240)[0]
+    img, _ = synth.render(scene, 3)
+    rig = synth.rig_for(scene)
+    x, y, w, h = rig.confidence_rect
+    assert rect_overexposed(img, rig.confidence_rect) is None
+    blown = img.copy()
+    blown[y : y + h, x : x + w] = 255
+    # Just over half of the rectangle clipped is named; just under half is not.
+    half = img.copy()
+    half[y : y + h // 2, x : x + w] = 255
+    assert rect_overexposed(half, rig.confidence_rect) is None
+    half[y : y + h // 2 + 2, x : x + w] = 255
+    assert "over-exposed" in (rect_overexposed(half, rig.confidence_rect) or "")
+
+    for name, image in (("blown.png", blown), ("plain.png", img)):
+        cv2.imwrite(str(tmp_path / name), image[..., ::-1])
+    rect = ",".join(str(v) for v in rig.confidence_rect)
+    out = tmp_path / "r.csv"
+    args = ["estimate", str(tmp_path / "blown.png"), str(tmp_path / "plain.png"), "--out", str(out)]
+    flags = ["--wheel-radius-mm", "140", "--confidence-rect", rect, "--method", "classic"]
+    assert main([*args, *flags]) == 0
+    rows = {r.split(",")[0]: r for r in out.read_text().splitlines()[1:]}
+    blown_row = rows[str(tmp_path / "blown.png")]
+    assert ",ok," not in blown_row and "confidence rectangle is over-exposed" in blown_row
+    assert "over-exposed" not in rows[str(tmp_path / "plain.png")]

@@ -9,9 +9,12 @@ which features separated wheel from soil in each recording for the run summary.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import numpy as np
 
+from .rig import rect_overexposed
 from .status import Status
 
 Point = tuple[float, float]
@@ -113,3 +116,42 @@ def failed(
         message=message or status.message,
         segmenter_features=segmenter_features,
     )
+
+
+_MEASURED = ("sinkage_mm", "theta1_deg", "theta2_deg")
+
+
+def finite_or_failed(result: FrameResult) -> FrameResult:
+    """``result``, or ``fit_failed`` if it claims a measurement that is not a finite number.
+
+    A non-finite number would be written as an empty cell next to ``ok``: a row that looks
+    measured and is not (e.g. R so large that z0 * R / r overflows)."""
+    if not result.status.measured:
+        return result
+    bad = [
+        f"{name} = {value!r}"
+        for name in _MEASURED
+        if (value := getattr(result, name)) is not None and not np.isfinite(value)
+    ]
+    if not bad:
+        return result
+    return failed(
+        result.image,
+        Status.FIT_FAILED,
+        f"non-finite result ({', '.join(bad)})",
+        segmenter_features=result.segmenter_features,
+    )
+
+
+def with_rect_hint(
+    result: FrameResult, image_u8: np.ndarray, rect: tuple[int, int, int, int]
+) -> FrameResult:
+    """``result``, its message extended by why the confidence rectangle misleads the method
+    where it is over-exposed and the frame was not measured ``ok``."""
+    if result.status == Status.OK:
+        return result
+    hint = rect_overexposed(image_u8, rect)
+    if hint is None:
+        return result
+    message = f"{result.message}; {hint}" if result.message else hint
+    return dataclasses.replace(result, message=message)

@@ -10,6 +10,7 @@ from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 # The hue band is circular: H_d = H_w + (P_d - 1) * HUE_SCALE_DEG, likewise H_a with P_a.
@@ -152,6 +153,32 @@ def validate_rig_fields(
         )
     if travel not in ("right", "left"):
         raise RigError(f'{source}: travel must be "right" or "left", got {travel!r}')
+
+
+# A pixel with a channel at or above this 8-bit level has lost its colour to the sensor's top.
+CLIPPED_LEVEL_U8 = 248
+# The share of a confidence rectangle's pixels clipped above which its statistics are the
+# light's, not the wheel's.
+MAX_CLIPPED_SHARE = 0.5
+
+
+def rect_overexposed(image_u8: Any, rect: tuple[int, int, int, int]) -> str | None:
+    """Why a frame's confidence rectangle cannot tell the wheel's colour, or None: more than
+    :data:`MAX_CLIPPED_SHARE` of its pixels have a channel at the sensor's top (a lamp's glow, a
+    highlight), so the wheel's hue, saturation and brightness there are the light's. ``image_u8``
+    is the (H, W, 3) uint8 frame; ``rect`` lies inside it (:func:`rect_problem`)."""
+    x, y, w, h = rect
+    patch = np.asarray(image_u8)[y : y + h, x : x + w]
+    if patch.ndim != 3 or patch.dtype != np.uint8 or patch.size == 0:
+        return None
+    share = float(np.mean(patch.max(axis=-1) >= CLIPPED_LEVEL_U8))
+    if share <= MAX_CLIPPED_SHARE:
+        return None
+    return (
+        f"the confidence rectangle is over-exposed ({100 * share:.0f} % of its pixels are at the "
+        "sensor's top, so its colour is the light's, not the wheel's): move it to a part of the "
+        "wheel face that is not blown out, or lower the exposure"
+    )
 
 
 def rect_problem(rect: Any, height: int, width: int) -> str | None:

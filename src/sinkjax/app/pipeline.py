@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..result import FrameResult, failed
+from ..result import FrameResult, failed, finite_or_failed, with_rect_hint
 from ..rig import Rig, rect_problem
 from ..status import Status
 
@@ -118,34 +118,13 @@ def _call(
         raise RuntimeError(f"method returned {len(results)} results for {len(names)} frames")
     # The row must carry the input's name whatever the method put there.
     return [
-        _finite(r if r.image == n else dataclasses.replace(r, image=n))
-        for r, n in zip(results, names, strict=True)
+        with_rect_hint(
+            finite_or_failed(r if r.image == n else dataclasses.replace(r, image=n)),
+            im,
+            rig.confidence_rect,
+        )
+        for r, n, im in zip(results, names, images, strict=True)
     ]
-
-
-_MEASURED = ("sinkage_mm", "theta1_deg", "theta2_deg")
-
-
-def _finite(result: FrameResult) -> FrameResult:
-    """``result``, or ``fit_failed`` if it claims a measurement that is not a finite number.
-
-    A non-finite number would be written as an empty cell next to ``ok``: a row that looks
-    measured and is not (e.g. R so large that z0 * R / r overflows)."""
-    if not result.status.measured:
-        return result
-    bad = [
-        f"{name} = {value!r}"
-        for name in _MEASURED
-        if (value := getattr(result, name)) is not None and not np.isfinite(value)
-    ]
-    if not bad:
-        return result
-    return failed(
-        result.image,
-        Status.FIT_FAILED,
-        f"non-finite result ({', '.join(bad)})",
-        segmenter_features=result.segmenter_features,
-    )
 
 
 def _run_group(
