@@ -3,8 +3,8 @@ threshold of a wheel without colour (:mod:`sinkjax.soft.adaptive`).
 
 A histogram is over log intensity (shading scales intensity, so a population keeps its width in
 log units), every second pixel each way, 64 bins from one 8-bit step to 1, smoothed over five
-bins. Nothing here is differentiable (each result is a choice of bin); the segmenter's leaves
-scale the thresholds found.
+bins. The thresholds found are not differentiable (each is a choice of bin); the segmenter's
+leaves scale them.
 """
 
 from __future__ import annotations
