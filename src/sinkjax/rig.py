@@ -155,8 +155,9 @@ def validate_rig_fields(
         raise RigError(f'{source}: travel must be "right" or "left", got {travel!r}')
 
 
-# A pixel with a channel at or above this 8-bit level has lost its colour to the sensor's top.
-CLIPPED_LEVEL_U8 = 248
+# A channel this close to the sensor's top (of 1) has lost the pixel's colour: the default
+# segmenter's chroma test ignores such pixels, and a rectangle full of them is named.
+CLIP_LEVEL = 0.97
 # The share of a confidence rectangle's pixels clipped above which its statistics are the
 # light's, not the wheel's.
 MAX_CLIPPED_SHARE = 0.5
@@ -171,7 +172,7 @@ def rect_overexposed(image_u8: Any, rect: tuple[int, int, int, int]) -> str | No
     patch = np.asarray(image_u8)[y : y + h, x : x + w]
     if patch.ndim != 3 or patch.dtype != np.uint8 or patch.size == 0:
         return None
-    share = float(np.mean(patch.max(axis=-1) >= CLIPPED_LEVEL_U8))
+    share = float(np.mean(patch.max(axis=-1) >= CLIP_LEVEL * 255.0))
     if share <= MAX_CLIPPED_SHARE:
         return None
     return (

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..rig import MIN_WHEEL_CHROMA, SegmentationParams
+from ..rig import CLIP_LEVEL, MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .histogram import deepest_valley, log_histogram, log_quantile, valley, valley_depth
 from .segmentation import HueSat, Rect, smooth, wheel_mask
@@ -65,7 +65,6 @@ from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, re
 
 _SQRT3_2 = 0.8660254037844386
 _TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
-_CLIP_LEVEL = 0.97  # a channel this close to the sensor's top has lost the pixel's chroma
 
 
 def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
@@ -244,7 +243,7 @@ class AdaptiveSegmenter(Segmenter):
         dist_q = jnp.where(pos, jnp.sqrt(jnp.where(pos, dist2, 1.0)), 0.0)
         m_chroma = jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma)
         # A clipped channel (a highlight, an over-exposed face) leaves no chroma to judge.
-        clipped = jax.nn.sigmoid((smooth(jnp.max(image, axis=-1)) - _CLIP_LEVEL) / 0.01)
+        clipped = jax.nn.sigmoid((smooth(jnp.max(image, axis=-1)) - CLIP_LEVEL) / 0.01)
         m_chroma = 1.0 - (1.0 - m_chroma) * (1.0 - clipped)
 
         limit_tex = self.p_tex * jnp.maximum(rect_mean(tex), self.tex_floor)
@@ -301,15 +300,7 @@ class AdaptiveSegmenter(Segmenter):
         return jax.lax.cond(dark | (rho <= 0.0), lambda: mask, inside_rule)
 
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
-        # lax.cond: per frame on a CPU only the branch taken runs (the grey features cost
-        # about 40 % of a frame); under vmap it becomes a select of both, as jnp.where would.
-        # One HSI conversion serves the switch and the H/S band.
-        hs = rgb_to_hsi(image)[:2]
-        return jax.lax.cond(
-            self.coloured(image, rect, hs),
-            lambda: wheel_mask(image, self.seg, rect, hs=hs),
-            lambda: self.grey_mask(image, rect),
-        )
+        return self._mask(image, rect, None)
 
     def uses_rim(self, features: int) -> bool:
         return features == FEATURES_INTENSITY  # the H/S mask does not use the rim
@@ -317,6 +308,12 @@ class AdaptiveSegmenter(Segmenter):
     def with_rim(self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc) -> Float[Array, "H W"]:
         # A coloured wheel's H/S mask does not change; a grey one's intensity threshold inside
         # the rim comes from the inside alone (grey_mask).
+        return self._mask(image, rect, disc)
+
+    def _mask(self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc | None) -> Array:
+        # lax.cond: per frame on a CPU only the branch taken runs (the grey features cost
+        # about 40 % of a frame); under vmap it becomes a select of both, as jnp.where would.
+        # One HSI conversion serves the switch and the H/S band.
         hs = rgb_to_hsi(image)[:2]
         return jax.lax.cond(
             self.coloured(image, rect, hs),
