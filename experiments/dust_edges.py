@@ -171,9 +171,10 @@ def report(res: dict, seed: int, seconds: float) -> str:
         "face fades towards the soil's colour, and the mask calls the fade soil), the soil's "
         "occluding edge is still a step in the image below it. The columns whose strongest edge "
         "lies elsewhere hold a shadow's edge or a pebble below the soil line, or a soil edge too "
-        "faint for the noise. The soft method does not use this yet: a boundary taken from the "
-        "image's edges below the mask's, in the band the mask's fade leaves open and with the "
-        "columns' agreement, is the step this study points to.",
+        "faint for the noise. The soft method uses this with the recording's rim "
+        "(`soft/soil_step.py`): where the columns' median offset of the strongest edge below "
+        "the mask's line exceeds a few pixels, each column's line moves down to its lowest "
+        "strong edge's peak; a clean frame keeps its mask.",
     ]
     return "\n".join(lines) + "\n"
 

@@ -28,6 +28,7 @@ from .rim import RecordingRim, RimChoice, choose_circle
 from .segmentation import Rect, soft_open
 from .segmenter import Segmenter
 from .settings import SoftSettings
+from .soil_step import soil_step
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
 # The default contact threshold as a number, for calibration's targets (SoftSettings has it).
@@ -136,6 +137,19 @@ def finish(
     mask, outline, choice = prepared.mask, prepared.outline, prepared.choice
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
     sign = travel_sign(travel) if isinstance(travel, str) else travel
+    # With the recording's rim, a soil line that the mask put above the soil's step (dust)
+    # moves down to it (soft.soil_step); the outline is then taken again.
+    c = choice.circle
+    mask, moved = jax.lax.cond(
+        choice.prior_weight > 0,
+        lambda: soil_step(image, mask, (c.cx_px, c.cy_px, c.r_px)),
+        lambda: (mask, jnp.zeros((), bool)),
+    )
+    outline = jax.lax.cond(
+        moved,
+        lambda: refine_outline(image, extract_outline(mask, s), s),
+        lambda: outline,
+    )
     ev = build_evidence(outline, choice.circle, sign, s, rim_weight=choice.prior_weight)
     res = fit(ev, capacity=rim_and_boundary_capacity(*mask.shape))
     p = res.params
