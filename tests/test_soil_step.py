@@ -53,9 +53,11 @@ def _frames(preset: str, seed: int) -> list[tuple]:
 def test_dust_soil_line_moves_down_to_the_rendered_surface() -> None:
     """Soil-coloured dust on the lower wheel: the mask calls the faded face soil, its soil line
     lies well above the rendered surface; the step puts it at the surface."""
+    n = 0
     for truth, mask, stepped, moved, surface in _frames("hard_dust", 2):
         if truth.sinkage_px < 8:
             continue
+        n += 1
         before = _soil_lines(mask, truth, surface)
         after = _soil_lines(stepped, truth, surface)
         assert np.median(before) < -8.0  # the mask's line: tens of px above the soil
@@ -63,6 +65,7 @@ def test_dust_soil_line_moves_down_to_the_rendered_surface() -> None:
         # Rows are whole pixels: the first non-wheel row is the surface's, to a pixel.
         assert abs(np.median(after)) <= 1.0
         assert np.mean(np.abs(after) <= 2.0) >= 0.8
+    assert n >= 2  # frames deep enough to tell were tested
 
 
 def test_a_clean_frame_keeps_its_mask_bit_for_bit() -> None:

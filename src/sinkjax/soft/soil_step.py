@@ -39,8 +39,9 @@ MIN_COLUMNS = 12
 ABOVE_PX, RIM_OUT_PX = 3.0, 2.0
 # A column's run counts when it is at least this long (px).
 MIN_RUN_PX = 4.0
-# The soil's step is the lowest edge at least this fraction of the column's strongest: a hole in
-# the wheel face, or a lug's edge, can be stronger than the soil's edge above the soil.
+# The soil's step is the lowest edge at least this fraction of the columns' typical strongest
+# (their median): a hole in the wheel face, or a lug's edge, can be stronger than the soil's
+# step, above it.
 STRONG = 0.5
 # The step's peak lies within this many rows above the lowest row that is that strong.
 PEAK_PX = 3.0
