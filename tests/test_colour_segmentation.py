@@ -12,8 +12,11 @@ import pytest
 
 from sinkjax.classic.estimator import hard_mask, rgb_to_hsi_np
 from sinkjax.rig import SegmentationParams
+from sinkjax.soft.adaptive import AdaptiveSegmenter
 from sinkjax.soft.colour import chromaticity, circular_mean_deg, rgb_to_hsi
 from sinkjax.soft.segmentation import (
+    box_weight,
+    colour_weight,
     column_median,
     confidence_means,
     paper_mask,
@@ -262,3 +265,58 @@ def test_veto_fraction_keeps_dust_blends_when_relaxed() -> None:
     g = jax.grad(lambda f: jnp.sum(reference_mask(x, rect, f) * jnp.asarray(inside, x.dtype)))(past)
     assert np.isfinite(float(g)) and float(g) > 0
     assert float(SegmentationParams().veto_fraction) == 0.25
+
+
+def _glow_scene(glow_cols: int) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray]:
+    """A wheel (a disc of radius 30, a saturated blue-green) on a grey wall over brown soil,
+    its confidence rectangle (20 x 8) in a lamp's glow: white (every channel at the sensor's
+    top) over the rectangle's first ``glow_cols`` columns, and 3 px around them."""
+    face = np.array([0.15, 0.55, 0.6])
+    img = np.empty((90, 120, 3))
+    img[:] = 0.5
+    img[70:] = (0.55, 0.42, 0.3)
+    yy, xx = np.mgrid[:90, :120]
+    img[(yy - 40) ** 2 + (xx - 60) ** 2 < 30**2] = face
+    rect = (50, 25, 20, 8)
+    if glow_cols:
+        img[22:36, 47 : 50 + glow_cols + 3] = 1.0
+    return img, rect, face
+
+
+@pytest.mark.parametrize("glow_cols", [12, 20])
+def test_a_glow_on_the_rectangle_does_not_give_the_wheel_its_colour(
+    glow_cols: int, hsi_reference
+) -> None:
+    """H_w and S_w are the face's own (Gonzalez & Woods' HSI of its colour) whether the glow
+    clips 60 % of the rectangle (its unclipped pixels are the face) or all of it (the face
+    around the rectangle, grown by its own size); the default segmenter then sees the wheel by
+    its hue, not as a grey one."""
+    img, rect, face = _glow_scene(glow_cols)
+    x = jnp.asarray(img)
+    h, s, _ = rgb_to_hsi(x)
+    h_w, s_w = confidence_means(h, s, rect, colour_weight(x, rect))
+    h_ref, s_ref, _ = hsi_reference(*face)
+    assert float(h_w) == pytest.approx(h_ref, abs=1e-3)
+    assert float(s_w) == pytest.approx(s_ref, abs=1e-4)
+    # As the paper has it (the rectangle's own pixels) the glow's white decides.
+    assert float(confidence_means(h, s, rect)[1]) < 0.6 * s_ref
+    seg = AdaptiveSegmenter()
+    assert bool(seg.coloured(x, rect))
+    mask = np.asarray(seg(x, jnp.asarray(rect, jnp.int32)))
+    yy, xx = np.mgrid[:90, :120]
+    d = np.hypot(yy - 40, xx - 60)
+    assert mask[(d < 26) & (yy > 40)].min() > 0.9  # the face below the glow
+    assert mask[d > 34].max() < 0.1  # wall and soil
+
+
+@pytest.mark.parametrize("face", [(0.15, 0.55, 0.6), (0.1, 0.25, 1.0)])
+def test_a_rectangle_without_a_glow_is_read_as_before(face: tuple[float, ...]) -> None:
+    """No pixel clipped, or one channel only (a saturated blue wheel's own primary at the
+    sensor's top keeps its hue): the rectangle's own pixels, exactly."""
+    img, rect, _ = _glow_scene(0)
+    img[(np.hypot(*np.mgrid[-40:50, -60:60]) < 30)] = face
+    x = jnp.asarray(img)
+    np.testing.assert_array_equal(
+        np.asarray(colour_weight(x, rect)),
+        np.asarray(box_weight(jnp.asarray(rect), 90, 120, x.dtype)),
+    )

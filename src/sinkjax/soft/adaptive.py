@@ -60,7 +60,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..rig import CLIP_LEVEL, MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .histogram import deepest_valley, log_histogram, log_quantile, valley, valley_depth
-from .segmentation import HueSat, Rect, smooth, wheel_mask
+from .segmentation import HueSat, Rect, colour_box, colour_weight, smooth, wheel_mask
 from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, rect_weight
 
 _SQRT3_2 = 0.8660254037844386
@@ -170,11 +170,17 @@ class AdaptiveSegmenter(Segmenter):
     t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
 
     def coloured(
-        self, image: Float[Array, "H W 3"], rect: Rect, hs: HueSat | None = None
+        self,
+        image: Float[Array, "H W 3"],
+        rect: Rect,
+        hs: HueSat | None = None,
+        box: Int[Array, " 4"] | None = None,
     ) -> Bool[Array, ""]:
         """True (as a 0-d bool array) when the wheel has enough colour for the H/S test.
-        ``hs``: the image's hue and saturation when the caller has them already."""
-        weight = rect_weight(rect, image.shape[0], image.shape[1], image.dtype)
+        ``hs``: the image's hue and saturation, ``box`` its :func:`colour_box`, when the caller
+        has them already."""
+        # The rectangle's unclipped pixels: a glow's white has no chroma, the face around it has.
+        weight = colour_weight(image, rect, box)
         return wheel_chroma(image, weight, hs) >= self.min_wheel_chroma
 
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
@@ -315,9 +321,10 @@ class AdaptiveSegmenter(Segmenter):
         # about 40 % of a frame); under vmap it becomes a select of both, as jnp.where would.
         # One HSI conversion serves the switch and the H/S band.
         hs = rgb_to_hsi(image)[:2]
+        box = colour_box(image, rect)
         return jax.lax.cond(
-            self.coloured(image, rect, hs),
-            lambda: wheel_mask(image, self.seg, rect, hs=hs),
+            self.coloured(image, rect, hs, box),
+            lambda: wheel_mask(image, self.seg, rect, hs=hs, box=box),
             lambda: self.grey_mask(image, rect, disc),
         )
 

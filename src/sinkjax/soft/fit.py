@@ -155,7 +155,10 @@ def boundary_side(
 ) -> Bool[Array, " K"]:
     """Which outline points lie inside the rim as soil boundary (not rim evidence).
 
-    A point clearly inside (``rim_band_in_px``) always does. Nearer the rim one point's offset is
+    A point clearly inside (``rim_band_in_px``) does where the deepest such stretch reaches it
+    without crossing the rim edge (a candidate neither clearly inside nor in a dip): the soil is
+    one curve from B to A, while a noisy rim edge (low light, a mask that stops short of the rim)
+    dips inside it here and there beyond them. Nearer the rim one point's offset is
     mostly edge error, but a shallow soil edge is a long, smooth dip below the rim (a chord of
     2 sqrt(2 r z0) px): the mean offset d - r of the lower edge points within
     ``contact_window_px`` in u (weights ``lower``: facing down, soil below, one per column) must
@@ -179,9 +182,19 @@ def boundary_side(
     us = key[order]
     cg = jnp.concatenate([jnp.zeros(1, dr.dtype), jnp.cumsum(gap[order])])
     zero = jnp.zeros((), dr.dtype)
-    at = jnp.searchsorted(us, jnp.minimum(u, zero), side="left")
-    to = jnp.searchsorted(us, jnp.maximum(u, zero), side="right")
-    connected = (cg[to] - cg[at]) < 0.5
+
+    def joined(anchor: Array) -> Array:
+        at = jnp.searchsorted(us, jnp.minimum(u, anchor), side="left")
+        to = jnp.searchsorted(us, jnp.maximum(u, anchor), side="right")
+        return (cg[to] - cg[at]) < 0.5
+
+    connected = joined(zero)
+    # A deep boundary is one soil curve: the points clearly inside the rim that the deepest
+    # stretch reaches without crossing the rim edge (a noisy rim edge beyond A or B dips inside
+    # it here and there, apart from the soil's curve).
+    depth = jnp.where((wc > 0) & deep, mean, jnp.inf)
+    i_deep = jnp.argmin(depth)
+    deep = deep & (joined(u[i_deep]) | ~jnp.isfinite(depth[i_deep]))
     # Where the soil is clearly inside the rim the dip adds only the corners where soil edge
     # and rim edge meet, which smoothing rounds and a thin wedge of background shifts: those
     # stay out, as the ends' tangents keep ``end_clearance_px`` from them.

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ..rig import HUE_SCALE_DEG, SegmentationParams, rect_problem
+from ..rig import CLIP_LEVEL, HUE_SCALE_DEG, SegmentationParams, rect_problem
 from .colour import chromaticity, circular_mean_deg, rgb_to_hsi, wrap_deg
 
 # The confidence rectangle (x, y, w, h) in px: static ints, or a traced array (see below).
@@ -23,29 +23,101 @@ Rect = tuple[int, int, int, int] | Int[Array, " 4"]
 
 
 def confidence_means(
-    h_deg: Float[Array, "H W"], s: Float[Array, "H W"], rect: Rect
+    h_deg: Float[Array, "H W"],
+    s: Float[Array, "H W"],
+    rect: Rect,
+    weight: Float[Array, "H W"] | None = None,
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """Eqs. 4-5: H_w (circular mean, degrees) and S_w over the confidence rectangle (x, y, w, h).
 
     ``rect`` is a tuple of ints (static: the rectangle is sliced out; raises ValueError if it
     does not lie inside the image) or an int array of 4 (traced: a masked mean over the image,
     so one compiled function serves every rectangle; the caller checks it with
-    :func:`sinkjax.rig.rect_problem`).
+    :func:`sinkjax.rig.rect_problem`). ``weight``: the pixels to average instead, 0/1 over the
+    image (:func:`colour_weight`: the rectangle's pixels that show the wheel's colour).
     """
     height, width = h_deg.shape[-2:]
     if isinstance(rect, tuple | list):
         problem = rect_problem(tuple(rect), height, width)
         if problem is not None:
             raise ValueError(problem)
-        x, y, w, h = rect
-        return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
-    x0, y0, w0, h0 = (rect[i] for i in range(4))
-    cols = jnp.arange(width, dtype=rect.dtype)
-    rows = jnp.arange(height, dtype=rect.dtype)
-    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
-    weight = inside.astype(s.dtype)
+        if weight is None:
+            x, y, w, h = rect
+            return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
+    if weight is None:
+        weight = box_weight(jnp.asarray(rect, jnp.int32), height, width, s.dtype)
     count = jnp.maximum(jnp.sum(weight), 1.0)
     return circular_mean_deg(h_deg, weight), jnp.sum(weight * s) / count
+
+
+def box_weight(
+    box: Int[Array, " 4"], height: int, width: int, dtype: jnp.dtype | type
+) -> Float[Array, "H W"]:
+    """1 inside the box (x, y, w, h) px (may be traced, may reach beyond the image), else 0."""
+    x0, y0, w0, h0 = (box[i] for i in range(4))
+    rows = jnp.arange(height, dtype=box.dtype)
+    cols = jnp.arange(width, dtype=box.dtype)
+    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
+    return inside.astype(dtype)
+
+
+# A pixel with two or three channels at the sensor's top (a lamp's glow, a highlight) shows the
+# light's colour, not the wheel's: its hue is that of the clipped channels, whatever the wheel's.
+# (One clipped channel, a saturated wheel's own primary, keeps its hue.) Where fewer than this
+# share of the confidence rectangle's pixels are unclipped, the wheel's colour is read from the
+# rectangle grown by half its width and height on every side (the face around a glow), or by its
+# whole width and height where that is still mostly clipped: from their unclipped pixels only.
+# The smaller growth keeps to the face.
+MIN_UNCLIPPED_SHARE = 0.25
+
+
+def unclipped(image: Float[Array, "*n 3"]) -> Float[Array, "*n"]:
+    """1 where at most one channel of a pixel reaches :data:`sinkjax.rig.CLIP_LEVEL`, else 0."""
+    middle = jnp.sum(image, axis=-1) - jnp.max(image, axis=-1) - jnp.min(image, axis=-1)
+    return (middle < CLIP_LEVEL).astype(image.dtype)
+
+
+def colour_box(image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, " 4"]:
+    """The box (x, y, w, h) px the wheel's colour is read from: the confidence rectangle, or
+    where it is mostly clipped (:data:`MIN_UNCLIPPED_SHARE`) that rectangle grown by half its
+    size on every side, or by its whole size. A discrete choice: no gradient flows through it.
+    A tuple ``rect`` is checked (ValueError if it does not lie inside the image)."""
+    height, width = image.shape[:2]
+    if isinstance(rect, tuple | list) and (problem := rect_problem(tuple(rect), height, width)):
+        raise ValueError(problem)
+    r = jnp.asarray(rect, jnp.int32)
+
+    def mostly_clipped(box: Int[Array, " 4"]) -> Array:
+        # The share over the box's grid of RECT_SAMPLES^2 pixels: a few hundred gathers, not
+        # a pass over the whole image per box.
+        return jnp.mean(unclipped(_rect_values(image, box))) < MIN_UNCLIPPED_SHARE
+
+    half = jnp.stack(
+        [r[0] - r[2] // 2, r[1] - r[3] // 2, r[2] + r[2] // 2 * 2, r[3] + r[3] // 2 * 2]
+    )
+    whole = jnp.stack([r[0] - r[2], r[1] - r[3], 3 * r[2], 3 * r[3]])
+    return jnp.where(mostly_clipped(r), jnp.where(mostly_clipped(half), whole, half), r)
+
+
+def colour_weight(
+    image: Float[Array, "H W 3"], rect: Rect, box: Int[Array, " 4"] | None = None
+) -> Float[Array, "H W"]:
+    """0/1 over the image: the unclipped pixels of :func:`colour_box` (``box``, where the caller
+    has it), the pixels whose colour is the wheel's (the whole rectangle, as the paper has it,
+    where none of them is unclipped). A rectangle without a clipped pixel gives exactly its own
+    pixels. Where the rectangle's grid of RECT_SAMPLES^2 pixels shows none clipped, it is the
+    rectangle's own pixels without looking further (``lax.cond``: a pass over the image saved)."""
+    height, width = image.shape[:2]
+    r = jnp.asarray(rect, jnp.int32)
+    box = colour_box(image, rect) if box is None else box
+    plain = box_weight(r, height, width, image.dtype)
+
+    def unclipped_only() -> Float[Array, "H W"]:
+        w = box_weight(box, height, width, image.dtype) * unclipped(image)
+        return jnp.where(jnp.sum(w) > 0, w, plain)
+
+    seen = jnp.any(unclipped(_rect_values(image, r)) < 1.0)
+    return jax.lax.cond(seen, unclipped_only, lambda: plain)
 
 
 def band_limits(
@@ -81,13 +153,19 @@ HueSat = tuple[Float[Array, "H W"], Float[Array, "H W"]]
 
 
 def paper_mask(
-    image: Float[Array, "H W 3"], seg: SegmentationParams, rect: Rect, hs: HueSat | None = None
+    image: Float[Array, "H W 3"],
+    seg: SegmentationParams,
+    rect: Rect,
+    hs: HueSat | None = None,
+    weight: Float[Array, "H W"] | None = None,
 ) -> Float[Array, "H W"]:
     """Image in [0, 1] -> the paper's steps (2)-(3) made differentiable: the H/S band alone.
     ``hs``: the image's hue (degrees) and saturation when the caller has them already
-    (:func:`~sinkjax.soft.colour.rgb_to_hsi`; the same numbers, one conversion fewer)."""
+    (:func:`~sinkjax.soft.colour.rgb_to_hsi`; the same numbers, one conversion fewer).
+    ``weight``: the pixels H_w and S_w are taken over (:func:`confidence_means`); None: the
+    rectangle's, as the paper has it."""
     h, s = rgb_to_hsi(image)[:2] if hs is None else hs
-    h_w, s_w = confidence_means(h, s, rect)
+    h_w, s_w = confidence_means(h, s, rect, weight)
     return soft_mask(h, s, h_w, s_w, seg)
 
 
@@ -117,6 +195,7 @@ def wheel_mask(
     *,
     reference: bool = True,
     hs: HueSat | None = None,
+    box: Int[Array, " 4"] | None = None,
 ) -> Float[Array, "H W"]:
     """Image in [0, 1] -> soft wheel mask: an H/S band (:func:`paper_mask`) with the pixels
     that are clearly soil or background vetoed (:func:`reference_mask`).
@@ -127,12 +206,16 @@ def wheel_mask(
     footage: the hue that soil-coloured dust or a colour cast pulls from H_w, the saturation
     that a confidence rectangle in a lamp's glow understates (the shaded face is more saturated
     than S_w). ``reference`` False: the paper's band alone, as the paper has it. ``hs``: as in
-    :func:`paper_mask`.
+    :func:`paper_mask`. Both read the wheel's colour from the rectangle's unclipped pixels
+    (:func:`colour_weight`; the face around it where a glow clips most of it); ``box``: the
+    :func:`colour_box`, where the caller has it.
     """
     if not reference:
         return paper_mask(image, seg, rect, hs)
-    return paper_mask(image, widened(seg), rect, hs) * reference_mask(
-        image, rect, seg.veto_fraction
+    box = colour_box(image, rect) if box is None else box
+    weight = colour_weight(image, rect, box)
+    return paper_mask(image, widened(seg), rect, hs, weight) * reference_mask(
+        image, rect, seg.veto_fraction, box
     )
 
 
@@ -169,10 +252,30 @@ def _median_spread(q: Float[Array, "N 2"]) -> tuple[Float[Array, " 2"], Float[Ar
     return med, 1.4826 * jnp.sqrt(jnp.sum(mad * mad) + 1e-12)
 
 
-def _rect_values(q: Float[Array, "H W 2"], rect: Rect) -> Float[Array, "N 2"]:
+def _weighted_column_median(q: Float[Array, "N C"], w: Float[Array, " N"]) -> Float[Array, " C"]:
+    # Each column's lower weighted median over the entries of weight 1 (0/1 weights, some 1).
+    order = jnp.argsort(q, axis=0)
+    cw = jnp.cumsum(w[order], axis=0)
+    idx = jnp.argmax(cw >= 0.5 * cw[-1:], axis=0)
+    cols = jnp.arange(q.shape[1])
+    return q[order[idx, cols], cols]
+
+
+def _wheel_spread(q: Float[Array, "N 2"], w: Float[Array, " N"]) -> tuple[Array, Array]:
+    # _median_spread over the samples of weight 1 (unclipped); all of them: exactly it.
+    def weighted() -> tuple[Array, Array]:
+        med = _weighted_column_median(q, w)
+        mad = _weighted_column_median(jnp.abs(q - med[None, :]), w)
+        return med, 1.4826 * jnp.sqrt(jnp.sum(mad * mad) + 1e-12)
+
+    return jax.lax.cond(jnp.all(w > 0), lambda: _median_spread(q), weighted)
+
+
+def _rect_values(q: Float[Array, "H W C"], rect: Rect) -> Float[Array, "N C"]:
     # A RECT_SAMPLES^2 grid of nearest pixels spread evenly over the rectangle, static or traced
     # alike (a traced rectangle has no static size; a median over a masked whole image would sort
-    # every pixel of the frame, 100+ ms at 640x480 on a CPU).
+    # every pixel of the frame, 100+ ms at 640x480 on a CPU). A rectangle reaching beyond the
+    # image samples its edge pixels there.
     height, width = q.shape[:2]
     r = jnp.asarray(rect, jnp.int32)
     x0, y0, w0, h0 = (r[i] for i in range(4))
@@ -180,20 +283,24 @@ def _rect_values(q: Float[Array, "H W 2"], rect: Rect) -> Float[Array, "N 2"]:
     frac = (jnp.arange(RECT_SAMPLES, dtype=dt) + 0.5) / RECT_SAMPLES
     xs = jnp.clip(x0 + jnp.floor(frac * w0.astype(dt)).astype(r.dtype), 0, width - 1)
     ys = jnp.clip(y0 + jnp.floor(frac * h0.astype(dt)).astype(r.dtype), 0, height - 1)
-    return q[ys[:, None], xs[None, :]].reshape(-1, 2)
+    return q[ys[:, None], xs[None, :]].reshape(-1, q.shape[-1])
 
 
 def reference_mask(
-    image: Float[Array, "H W 3"], rect: Rect, veto_fraction: float | Float[Array, ""] = 0.25
+    image: Float[Array, "H W 3"],
+    rect: Rect,
+    veto_fraction: float | Float[Array, ""] = 0.25,
+    box: Int[Array, " 4"] | None = None,
 ) -> Float[Array, "H W"]:
     """Soft veto in [0, 1]: 0 where a pixel's chromaticity is clearly nearer the soil's or the
     background's than the wheel's.
 
     References are medians (robust to speculars, lugs and pebbles) of the chromaticity
     (:func:`~sinkjax.soft.colour.chromaticity`, blind to shading and exposure): the wheel's over
-    the confidence rectangle, the background's over the image's top rows, the soil's over its
-    bottom rows. Each pixel is compared with the perpendicular bisector of wheel and reference
-    (the nearest-mean rule), so the soil's own colour, not a band around the wheel's, decides.
+    the confidence rectangle's unclipped pixels (:func:`colour_box`), the background's over the
+    image's top rows, the soil's over its bottom rows. Each pixel is compared with the
+    perpendicular bisector of wheel and reference (the nearest-mean rule), so the soil's own
+    colour, not a band around the wheel's, decides.
     A reference closer to the wheel's than twice the wheel's own spread (MAD) is the wheel itself (a
     strip the wheel fills) and vetoes nothing. ``veto_fraction``: a pixel is vetoed once it lies
     nearer the other reference by that fraction of the two references' separation (a calibratable
@@ -205,7 +312,9 @@ def reference_mask(
     blurred = jnp.stack([smooth(image[..., c]) for c in range(3)], axis=-1)
     q = chromaticity(blurred)
     n = max(2, round(EDGE_ROWS_FRACTION * height))
-    mu_w, sd_w = _median_spread(_rect_values(q, rect))
+    box = colour_box(image, rect) if box is None else box
+    use = unclipped(_rect_values(image, box))
+    mu_w, sd_w = _wheel_spread(_rect_values(q, box), jnp.where(jnp.any(use > 0), use, 1.0))
     d_w = jnp.sum((q - mu_w[None, None, :]) ** 2, axis=-1)
     out = jnp.ones(image.shape[:2], image.dtype)
     for strip in (q[:n], q[-n:]):

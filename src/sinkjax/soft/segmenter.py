@@ -24,7 +24,7 @@ from ..result import (
     FEATURES_UNKNOWN as FEATURES_UNKNOWN,
 )
 from ..rig import SegmentationParams, rect_problem
-from .segmentation import Rect, wheel_mask
+from .segmentation import Rect, box_weight, wheel_mask
 
 # The inside of a recording's rim: (cx, cy, radius) px, radius 0 where no rim is known.
 Disc = tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]
@@ -42,11 +42,7 @@ def rect_weight(
         problem = rect_problem(tuple(rect), height, width)
         if problem is not None:
             raise ValueError(problem)
-    x0, y0, w0, h0 = (jnp.asarray(rect[i], jnp.int32) for i in range(4))
-    rows = jnp.arange(height, dtype=jnp.int32)
-    cols = jnp.arange(width, dtype=jnp.int32)
-    inside = ((rows >= y0) & (rows < y0 + h0))[:, None] & ((cols >= x0) & (cols < x0 + w0))[None, :]
-    return inside.astype(dtype)
+    return box_weight(jnp.asarray(rect, jnp.int32), height, width, dtype)
 
 
 class Segmenter(eqx.Module):
