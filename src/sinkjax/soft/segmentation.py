@@ -37,10 +37,8 @@ def confidence_means(
     image (:func:`colour_weight`: the rectangle's pixels that show the wheel's colour).
     """
     height, width = h_deg.shape[-2:]
+    check_rect(rect, height, width)
     if isinstance(rect, tuple | list):
-        problem = rect_problem(tuple(rect), height, width)
-        if problem is not None:
-            raise ValueError(problem)
         if weight is None:
             x, y, w, h = rect
             return circular_mean_deg(h_deg[y : y + h, x : x + w]), jnp.mean(s[y : y + h, x : x + w])
@@ -48,6 +46,14 @@ def confidence_means(
         weight = box_weight(jnp.asarray(rect, jnp.int32), height, width, s.dtype)
     count = jnp.maximum(jnp.sum(weight), 1.0)
     return circular_mean_deg(h_deg, weight), jnp.sum(weight * s) / count
+
+
+def check_rect(rect: Rect, height: int, width: int) -> None:
+    """Raise ValueError (saying how to fix it) where a static (tuple) ``rect`` does not lie inside
+    a ``width`` x ``height`` image; a traced one is the caller's to check
+    (:func:`sinkjax.rig.rect_problem`)."""
+    if isinstance(rect, tuple | list) and (problem := rect_problem(tuple(rect), height, width)):
+        raise ValueError(problem)
 
 
 def box_weight(
@@ -83,8 +89,7 @@ def colour_box(image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, " 4"]:
     size on every side, or by its whole size. A discrete choice: no gradient flows through it.
     A tuple ``rect`` is checked (ValueError if it does not lie inside the image)."""
     height, width = image.shape[:2]
-    if isinstance(rect, tuple | list) and (problem := rect_problem(tuple(rect), height, width)):
-        raise ValueError(problem)
+    check_rect(rect, height, width)
     r = jnp.asarray(rect, jnp.int32)
 
     def mostly_clipped(box: Int[Array, " 4"]) -> Array:

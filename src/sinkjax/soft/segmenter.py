@@ -23,8 +23,8 @@ from ..result import (
     FEATURES_LEARNED as FEATURES_LEARNED,
     FEATURES_UNKNOWN as FEATURES_UNKNOWN,
 )
-from ..rig import SegmentationParams, rect_problem
-from .segmentation import Rect, box_weight, wheel_mask
+from ..rig import SegmentationParams
+from .segmentation import Rect, box_weight, check_rect, wheel_mask
 
 # The inside of a recording's rim: (cx, cy, radius) px, radius 0 where no rim is known.
 Disc = tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]
@@ -38,10 +38,7 @@ def rect_weight(
 ) -> Float[Array, "H W"]:
     """1 inside the confidence rectangle (x, y, w, h), 0 outside; a tuple is checked (raises
     ValueError if it does not lie inside the image), an int array of 4 may be traced."""
-    if isinstance(rect, tuple | list):
-        problem = rect_problem(tuple(rect), height, width)
-        if problem is not None:
-            raise ValueError(problem)
+    check_rect(rect, height, width)
     return box_weight(jnp.asarray(rect, jnp.int32), height, width, dtype)
 
 
