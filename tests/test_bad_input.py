@@ -84,6 +84,12 @@ def test_overexposed_confidence_rectangle_is_named_in_the_message(tmp_path):
     assert rect_overexposed(half, rig.confidence_rect) is None
     half[y : y + h // 2 + 2, x : x + w] = 255
     assert "over-exposed" in (rect_overexposed(half, rig.confidence_rect) or "")
+    # A saturated colour (one channel at the top) is not a glow; two channels at the top are.
+    one = img.copy()
+    one[y : y + h, x : x + w] = (255, 30, 20)
+    assert rect_overexposed(one, rig.confidence_rect) is None
+    one[y : y + h, x : x + w] = (255, 250, 20)
+    assert "over-exposed" in (rect_overexposed(one, rig.confidence_rect) or "")
 
     for name, image in (("blown.png", blown), ("plain.png", img)):
         cv2.imwrite(str(tmp_path / name), image[..., ::-1])

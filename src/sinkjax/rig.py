@@ -155,8 +155,10 @@ def validate_rig_fields(
         raise RigError(f'{source}: travel must be "right" or "left", got {travel!r}')
 
 
-# A channel this close to the sensor's top (of 1) has lost the pixel's colour: the default
-# segmenter's chroma test ignores such pixels, and a rectangle full of them is named.
+# A channel this close to the sensor's top (of 1) is clipped. A pixel with two or three clipped
+# channels has lost its colour (it shows the light's): the default segmenter reads the wheel's
+# colour without such pixels, and a rectangle full of them is named. One clipped channel alone
+# is a saturated colour (a bright blue wheel), not a glow.
 CLIP_LEVEL = 0.97
 # The share of a confidence rectangle's pixels clipped above which its statistics are the
 # light's, not the wheel's.
@@ -165,20 +167,24 @@ MAX_CLIPPED_SHARE = 0.5
 
 def rect_overexposed(image_u8: Any, rect: tuple[int, int, int, int]) -> str | None:
     """Why a frame's confidence rectangle cannot tell the wheel's colour, or None: more than
-    :data:`MAX_CLIPPED_SHARE` of its pixels have a channel at the sensor's top (a lamp's glow, a
-    highlight), so the wheel's hue, saturation and brightness there are the light's. ``image_u8``
-    is the (H, W, 3) uint8 frame; ``rect`` lies inside it (:func:`rect_problem`)."""
+    :data:`MAX_CLIPPED_SHARE` of its pixels have two or three channels at the sensor's top (a
+    lamp's glow, a highlight), so the wheel's hue, saturation and brightness there are the
+    light's. ``image_u8`` is the (H, W, 3) uint8 frame; ``rect`` lies inside it
+    (:func:`rect_problem`)."""
     x, y, w, h = rect
     patch = np.asarray(image_u8)[y : y + h, x : x + w]
     if patch.ndim != 3 or patch.dtype != np.uint8 or patch.size == 0:
         return None
-    share = float(np.mean(patch.max(axis=-1) >= CLIP_LEVEL * 255.0))
+    # The middle channel of three is at the top where two or three are (soft.segmentation's
+    # ``unclipped``, on uint8).
+    middle = np.sort(patch, axis=-1)[..., 1]
+    share = float(np.mean(middle >= CLIP_LEVEL * 255.0))
     if share <= MAX_CLIPPED_SHARE:
         return None
     return (
-        f"the confidence rectangle is over-exposed ({100 * share:.0f} % of its pixels are at the "
-        "sensor's top, so its colour is the light's, not the wheel's): move it to a part of the "
-        "wheel face that is not blown out, or lower the exposure"
+        f"the confidence rectangle is over-exposed ({100 * share:.0f} % of its pixels have two "
+        "or three channels at the sensor's top, so its colour is the light's, not the wheel's): "
+        "move it to a part of the wheel face that is not blown out, or lower the exposure"
     )
 
 
