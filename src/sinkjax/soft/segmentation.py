@@ -17,6 +17,7 @@ from jaxtyping import Array, Float, Int
 
 from ..rig import CLIP_LEVEL, HUE_SCALE_DEG, SegmentationParams, rect_problem
 from .colour import chromaticity, circular_mean_deg, rgb_to_hsi, wrap_deg
+from .wheel_colour import column_median, wheel_colour
 
 # The confidence rectangle (x, y, w, h) in px: static ints, or a traced array (see below).
 Rect = tuple[int, int, int, int] | Int[Array, " 4"]
@@ -237,45 +238,6 @@ RECT_SAMPLES = 32
 MIN_SPREAD = 0.02
 
 
-def column_median(q: Float[Array, "N C"]) -> Float[Array, " C"]:
-    """Median of each column: the values of ``jnp.median(q, axis=0)``, and like it a gradient
-    on the middle one or two entries (among tied entries, perhaps another one), at half its cost
-    on a CPU: only the lower half is ordered (``lax.top_k``), not every value (a full sort of a
-    640 x 14 strip takes about 1 ms there)."""
-    n = q.shape[0]
-    low = -jax.lax.top_k(-q.T, n // 2 + 1)[0]  # (C, n // 2 + 1), ascending
-    if n % 2:
-        return low[:, n // 2]
-    return 0.5 * (low[:, n // 2 - 1] + low[:, n // 2])
-
-
-def _median_spread(q: Float[Array, "N 2"]) -> tuple[Float[Array, " 2"], Float[Array, ""]]:
-    # Per-component median, and the MAD as a normal-equivalent spread. ``q`` is finite (the
-    # chromaticity of a finite image), so no entry need be ignored as NaN.
-    med = column_median(q)
-    mad = column_median(jnp.abs(q - med[None, :]))
-    return med, 1.4826 * jnp.sqrt(jnp.sum(mad * mad) + 1e-12)
-
-
-def _weighted_column_median(q: Float[Array, "N C"], w: Float[Array, " N"]) -> Float[Array, " C"]:
-    # Each column's lower weighted median over the entries of weight 1 (0/1 weights, some 1).
-    order = jnp.argsort(q, axis=0)
-    cw = jnp.cumsum(w[order], axis=0)
-    idx = jnp.argmax(cw >= 0.5 * cw[-1:], axis=0)
-    cols = jnp.arange(q.shape[1])
-    return q[order[idx, cols], cols]
-
-
-def _wheel_spread(q: Float[Array, "N 2"], w: Float[Array, " N"]) -> tuple[Array, Array]:
-    # _median_spread over the samples of weight 1 (unclipped); all of them: exactly it.
-    def weighted() -> tuple[Array, Array]:
-        med = _weighted_column_median(q, w)
-        mad = _weighted_column_median(jnp.abs(q - med[None, :]), w)
-        return med, 1.4826 * jnp.sqrt(jnp.sum(mad * mad) + 1e-12)
-
-    return jax.lax.cond(jnp.all(w > 0), lambda: _median_spread(q), weighted)
-
-
 def _rect_values(q: Float[Array, "H W C"], rect: Rect) -> Float[Array, "N C"]:
     # A RECT_SAMPLES^2 grid of nearest pixels spread evenly over the rectangle, static or traced
     # alike (a traced rectangle has no static size; a median over a masked whole image would sort
@@ -300,16 +262,18 @@ def reference_mask(
     """Soft veto in [0, 1]: 0 where a pixel's chromaticity is clearly nearer the soil's or the
     background's than the wheel's.
 
-    References are medians (robust to speculars, lugs and pebbles) of the chromaticity
-    (:func:`~sinkjax.soft.colour.chromaticity`, blind to shading and exposure): the wheel's over
-    the confidence rectangle's unclipped pixels (:func:`colour_box`), the background's over the
-    image's top rows, the soil's over its bottom rows. Each pixel is compared with the
-    perpendicular bisector of wheel and reference (the nearest-mean rule), so the soil's own
-    colour, not a band around the wheel's, decides.
-    A reference closer to the wheel's than twice the wheel's own spread (MAD) is the wheel itself (a
-    strip the wheel fills) and vetoes nothing. ``veto_fraction``: a pixel is vetoed once it lies
-    nearer the other reference by that fraction of the two references' separation (a calibratable
-    leaf: dust that blends the wheel's colour towards the soil's needs a larger one).
+    In chromaticity (:func:`~sinkjax.soft.colour.chromaticity`, blind to shading and
+    exposure) the background's and the soil's colours are medians (robust to pebbles) over the
+    image's top and bottom rows; the wheel's is the median over the confidence rectangle's
+    unclipped pixels (:func:`colour_box`), or where a glow or a highlight spreads them towards
+    the light's colour, their saturated end (:func:`~sinkjax.soft.wheel_colour.wheel_colour`).
+    Each pixel is compared with the perpendicular bisector of wheel and reference (the
+    nearest-mean rule), so the soil's own colour, not a band around the wheel's, decides.
+    A reference closer to the wheel than twice the wheel's own spread (MAD) is
+    the wheel itself (a strip the wheel fills) and vetoes nothing. ``veto_fraction``: a pixel
+    is vetoed once it lies nearer the other reference by that fraction of the two references'
+    separation (a calibratable leaf: dust that blends the wheel's colour towards the soil's
+    needs a larger one).
     """
     height = image.shape[0]
     # Sensor noise in the dark would scatter single pixels across the bisector: decide on
@@ -319,18 +283,18 @@ def reference_mask(
     n = max(2, round(EDGE_ROWS_FRACTION * height))
     box = colour_box(image, rect) if box is None else box
     use = unclipped(_rect_values(image, box))
-    mu_w, sd_w = _wheel_spread(_rect_values(q, box), jnp.where(jnp.any(use > 0), use, 1.0))
-    d_w = jnp.sum((q - mu_w[None, None, :]) ** 2, axis=-1)
+    wheel = wheel_colour(_rect_values(q, box), jnp.where(jnp.any(use > 0), use, 1.0))
+    d_w = jnp.sum((q - wheel.centre[None, None, :]) ** 2, axis=-1)
     out = jnp.ones(image.shape[:2], image.dtype)
     for strip in (q[:n], q[-n:]):
-        mu_c, _ = _median_spread(strip.reshape(-1, 2))
-        sep = jnp.sqrt(jnp.sum((mu_c - mu_w) ** 2) + 1e-12)
+        mu_c = column_median(strip.reshape(-1, 2))
+        sep = jnp.sqrt(jnp.sum((mu_c - wheel.centre) ** 2) + 1e-12)
         d_c = jnp.sum((q - mu_c[None, None, :]) ** 2, axis=-1)
         margin = (d_c - d_w) / (2.0 * sep)
         m_c = jax.nn.sigmoid((margin + veto_fraction * sep) / (0.05 * sep + 1e-3))
         # A reference within two spreads of the wheel's is the wheel itself; the spread is at
         # least the chromaticity's sensor/JPEG noise, so a clean uniform wheel gates it fully off.
-        spread = jnp.maximum(sd_w, MIN_SPREAD)
+        spread = jnp.maximum(wheel.spread, MIN_SPREAD)
         gate = jax.nn.sigmoid((sep - 2.0 * spread) / (0.25 * spread))
         out = out * (1.0 - gate * (1.0 - m_c))
     return out
