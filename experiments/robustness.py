@@ -151,7 +151,8 @@ def report(summary: dict, cfg: dict) -> str:
         "# Hard presets: accuracy, failures, coverage, flagged vs wrong (issue 12)",
         "",
         f"Seed {cfg['seed']} (presets developed on seed 7), {cfg['recordings']} recordings x "
-        f"{cfg['frames']} frames per preset, {cfg['width']}x{cfg['height']}, default thresholds; "
+        f"{cfg['frames']} frames per preset, {cfg['width']}x{cfg['height']}, default thresholds"
+        f"{'' if 'classic' in summary else ', soft method only (`--soft-only`)'}; "
         f"run {cfg['seconds']:.0f} s. {sm.RULE}; {sm.RULE_COVERAGE}. Wrong: relative sinkage "
         f"error > {WRONG_PCT:.0f} % on the frame's own numbers (`ok` or `implausible`).",
         "",
@@ -159,7 +160,7 @@ def report(summary: dict, cfg: dict) -> str:
         "median abs θ [deg] | wrong+flagged | wrong+ok | right+flagged | right+ok | no number |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for method in ("soft", "classic"):
+    for method in summary:
         for preset, s in summary[method].items():
             lines.append(
                 f"| {method} | {preset} | {f(s['median_rel_sinkage_pct'])} | "
@@ -168,7 +169,7 @@ def report(summary: dict, cfg: dict) -> str:
                 f"{s['right_flagged']} | {s['right_ok']} | {s['no_number']} |"
             )
     lines += ["", "Statuses:", ""]
-    for method in ("soft", "classic"):
+    for method in summary:
         lines.append(f"- {method}: {summary[method]['all']['statuses']}")
     return "\n".join(lines) + "\n"
 
@@ -179,7 +180,7 @@ def compare(summary: dict, baseline: dict, label: str) -> str:
     f = lambda x: "-" if x is None or not np.isfinite(x) else f"{x:.1f}"
     keys = ("wrong_ok", "wrong_flagged", "right_flagged", "right_ok")
     lines = []
-    for method in ("soft", "classic"):
+    for method in (m for m in summary if m in baseline):
         pairs = [(p, baseline[method][p], now) for p, now in summary[method].items()]
         if all(old[k] == now[k] for _, old, now in pairs for k in keys):
             continue
@@ -219,33 +220,32 @@ def main() -> None:
     )
     a = p.parse_args()
     n_rec, n_frames = (1, 4) if a.quick else (a.recordings, a.frames)
+    base = None if a.baseline is None else json.loads(a.baseline.read_text())
+    planned = dict(seed=a.seed, recordings=n_rec, frames=n_frames, width=a.width, height=a.height)
+    if base is not None and any(base["config"][k] != v for k, v in planned.items()):
+        theirs = ", ".join(f"{k} {base['config'][k]}" for k in planned)
+        ours = ", ".join(f"{k} {v}" for k, v in planned.items())
+        raise SystemExit(f"--baseline is another run ({theirs}); this run: {ours}")
     t0 = time.time()
     rows = run(a.seed, n_rec, n_frames, a.width, a.height, classic=not a.soft_only)
-    cfg = dict(
-        seed=a.seed,
-        recordings=n_rec,
-        frames=n_frames,
-        width=a.width,
-        height=a.height,
-        seconds=time.time() - t0,
-    )
+    cfg = dict(**planned, seconds=time.time() - t0)
+    methods = ("soft",) if a.soft_only else ("soft", "classic")
     summary = {
         m: {
             **{pr: summarise([r for r in rows if r["preset"] == pr], m) for pr in HARD_PRESETS},
             "all": summarise(rows, m),
         }
-        for m in ("soft", "classic")
+        for m in methods
     }
+    if a.soft_only:  # run() repeated the soft results in the classic columns
+        rows = [{k: v for k, v in r.items() if k != "classic"} for r in rows]
     name = "robustness_quick" if a.quick else "robustness"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / f"{name}.json").write_text(
         json.dumps({"config": cfg, "summary": summary, "frames": rows}, indent=1, default=str)
     )
     text = report(summary, cfg)
-    if a.baseline is not None:
-        base = json.loads(a.baseline.read_text())
-        if base["config"]["seed"] != a.seed:
-            raise SystemExit(f"--baseline is seed {base['config']['seed']}, this run {a.seed}")
+    if base is not None:
         text += compare(summary, base["summary"], a.baseline.name)
     (a.out / f"{name}.md").write_text(text)
     print(text)
