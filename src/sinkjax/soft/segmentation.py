@@ -269,11 +269,11 @@ def reference_mask(
     the light's colour, their saturated end (:func:`~sinkjax.soft.wheel_colour.wheel_colour`).
     Each pixel is compared with the perpendicular bisector of wheel and reference (the
     nearest-mean rule), so the soil's own colour, not a band around the wheel's, decides.
-    A reference closer to the wheel than twice the wheel's own spread (MAD) is
-    the wheel itself (a strip the wheel fills) and vetoes nothing. ``veto_fraction``: a pixel
-    is vetoed once it lies nearer the other reference by that fraction of the two references'
-    separation (a calibratable leaf: dust that blends the wheel's colour towards the soil's
-    needs a larger one).
+    A reference closer to the wheel than twice the wheel's own spread (MAD) is the wheel itself
+    (a strip the wheel fills) and vetoes nothing. ``veto_fraction``: a pixel is vetoed once it
+    lies nearer the other reference by that fraction of the two references' separation (a
+    calibratable leaf: dust that blends the wheel's colour towards the soil's needs a larger
+    one).
     """
     height = image.shape[0]
     # Sensor noise in the dark would scatter single pixels across the bisector: decide on
