@@ -45,7 +45,7 @@ def run(
     seed: int, n_rec: int, n_frames: int, width: int, height: int, classic: bool = True
 ) -> list[dict]:
     """One row per frame: preset, recording, truth and both methods' results (``classic``
-    False: the soft method only, its results repeated in the classic columns)."""
+    False: the soft method's only)."""
     rng = np.random.default_rng(seed)
     rows: list[dict] = []
     for preset in HARD_PRESETS:
@@ -57,7 +57,7 @@ def run(
             names = [f"{preset}_{rec}_{i:02d}" for i in range(n_frames)]
             soft = estimate_batch([im for im, _ in rendered], rig, names)
             if not classic:
-                rows += _rows(preset, rec, scenes, rendered, soft, soft)
+                rows += _rows(preset, rec, scenes, rendered, soft, None)
                 continue
             classic_out = [
                 estimate_classic(im, rig, n) for (im, _), n in zip(rendered, names, strict=True)
@@ -80,9 +80,9 @@ def _rows(
     scenes: list,
     rendered: list,
     soft: list[FrameResult],
-    classic: list[FrameResult],
+    classic: list[FrameResult] | None,
 ) -> list[dict]:
-    return [
+    rows = [
         {
             "preset": preset,
             "recording": rec,
@@ -90,10 +90,13 @@ def _rows(
             "terrain": scenes[i].terrain,
             "truth": [t.sinkage_mm, t.theta1_deg, t.theta2_deg],
             "soft": _row(s),
-            "classic": _row(c),
         }
-        for i, ((_, t), s, c) in enumerate(zip(rendered, soft, classic, strict=True))
+        for i, ((_, t), s) in enumerate(zip(rendered, soft, strict=True))
     ]
+    if classic is not None:
+        for row, c in zip(rows, classic, strict=True):
+            row["classic"] = _row(c)
+    return rows
 
 
 def _row(r: FrameResult) -> dict:
@@ -237,8 +240,6 @@ def main() -> None:
         }
         for m in methods
     }
-    if a.soft_only:  # run() repeated the soft results in the classic columns
-        rows = [{k: v for k, v in r.items() if k != "classic"} for r in rows]
     name = "robustness_quick" if a.quick else "robustness"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / f"{name}.json").write_text(
