@@ -133,6 +133,55 @@ def test_capacity_overflow_is_flagged() -> None:
     assert default_capacity(H, W) == 6 * (H + W)
 
 
+def _speckled_disc() -> tuple[np.ndarray, np.ndarray]:
+    """The disc's mask with 2x2 speckles of wheel (patches of the wheel's colour on the wall)
+    on a 4 px grid around it and 2x2 pinholes in its face; and the clean disc's."""
+    rng = np.random.default_rng(0)
+    clean = coverage(disc())
+    speckle = np.zeros((H, W))
+    for y in range(0, H - 1, 4):
+        for x in range(0, W - 1, 4):
+            if rng.random() < 0.5:
+                speckle[y : y + 2, x : x + 2] = 1.0
+    holes = np.zeros((H, W))
+    for y, x in ((25, 30), (36, 40), (30, 25)):
+        holes[y : y + 2, x : x + 2] = 1.0
+    return np.maximum(clean, speckle * (clean == 0)) * (1.0 - holes), clean
+
+
+def rim_points(o) -> tuple[np.ndarray, np.ndarray]:
+    """Which valid outline points lie on the disc's rim, and their y."""
+    k = np.asarray(o.valid)
+    x, y = np.asarray(o.x_px)[k], np.asarray(o.y_px)[k]
+    return np.abs(np.hypot(x - CX, y - CY) - R) < 0.6, y
+
+
+def test_crowded_outline_keeps_the_rim_not_the_speckle() -> None:
+    # Points are stored in raster order: a ridge over capacity used to keep the top rows'
+    # speckle and drop the rim below them. Here 772 ridge points, capacity 300.
+    mask, clean = _speckled_disc()
+    everything = _extract(jnp.asarray(mask), capacity=10**4)
+    assert int(np.sum(np.asarray(everything.valid))) > 2 * 300
+    on_clean, y_clean = rim_points(_extract(jnp.asarray(clean)))
+    o = _extract(jnp.asarray(mask), capacity=300)
+    assert not bool(o.overflow)
+    on, y = rim_points(o)
+    bottom = lambda yy: yy > CY + 0.7 * R  # below the rows where speckle filled the capacity
+    assert on.sum() >= 0.95 * on_clean.sum()
+    assert np.sum(on & bottom(y)) >= 0.95 * np.sum(on_clean & bottom(y_clean))
+    assert np.sum(~on) <= 0.05 * on.sum()  # speckle and pinhole edges are gone
+    # Uncrowded (the default capacity holds all 772): every point kept, as before, bit for bit.
+    kept = _extract(jnp.asarray(mask))
+    n = int(np.sum(np.asarray(kept.valid)))
+    assert n == int(np.sum(np.asarray(everything.valid)))
+    leaves = zip(
+        jax.tree_util.tree_leaves(kept), jax.tree_util.tree_leaves(everything), strict=True
+    )
+    for a, b in leaves:
+        if np.ndim(a):
+            np.testing.assert_array_equal(np.asarray(a)[:n], np.asarray(b)[:n])
+
+
 def test_refine_moves_a_biased_mask_edge_onto_the_image_edge() -> None:
     # The mask's edge sits 1.3 px inside the wheel's (a threshold that does not fire at 50 %
     # coverage); the image's colours, mixed by coverage, put the edge back on the circle.

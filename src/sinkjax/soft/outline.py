@@ -67,14 +67,21 @@ def compact(flags: Bool[Array, " N"], size: int) -> tuple[Array, Array]:
     return idx[:size], pos[-1] + 1
 
 
-def extract_outline(
-    mask: Float[Array, "H W"], settings: SoftSettings, capacity: int | None = None
-) -> Outline:
-    """Sub-pixel outline points of a soft mask. ``capacity`` is static."""
-    s = settings.astype(mask.dtype)
-    height, width = mask.shape
-    k = default_capacity(height, width) if capacity is None else capacity
-    m = smooth(mask)
+# Where the ridge holds more points than the capacity, a ridge point is kept only where the mask
+# a few pixels inside it (along the gradient) exceeds the mask as far outside it by at least
+# CROWD_CONTRAST, each averaged over a box: the edge between a solid region and an empty one,
+# not a speckle's, a patch's or a pinhole's. Each level is (pixels each side, box half-size);
+# the next level applies where the last still leaves more points than the capacity.
+CROWD_LEVELS = ((3, 2), (8, 5))
+CROWD_CONTRAST = 0.5
+
+
+# (dy, dx) of the quantised gradient directions 0, 45, 90, 135 degrees.
+STEPS = ((0, 1), (1, 1), (1, 0), (1, -1))
+
+
+def _gradients(m: Float[Array, "H W"]) -> tuple[Array, Array, Array, Array]:
+    """Sobel gx, gy of the smoothed mask, their magnitude, and the direction's index in STEPS."""
     # Sobel derivatives, normalised so a unit step blurred over n pixels has slope ~1/n.
     gx = (
         _shift(m, -1, 1)
@@ -101,29 +108,108 @@ def extract_outline(
     q = jnp.where(
         ay <= t22 * ax, 0, jnp.where(ax <= t22 * ay, 2, jnp.where(gx * gy > 0, 1, 3))
     ).astype(jnp.int32)
-    steps = ((0, 1), (1, 1), (1, 0), (1, -1))  # (dy, dx) for 0, 45, 90, 135 degrees
+    return gx, gy, mag, q
+
+
+def _shift_by(a: Float[Array, "H W"], dy: int, dx: int) -> Float[Array, "H W"]:
+    # out[i, j] = a[i + dy, j + dx] with edge replication, for any small shift.
+    p = max(abs(dy), abs(dx))
+    h, w = a.shape
+    padded = jnp.pad(a, p, mode="edge")
+    return padded[p + dy : p + dy + h, p + dx : p + dx + w]
+
+
+def _edge_contrast(
+    m: Float[Array, "H W"],
+    gx: Float[Array, "H W"],
+    gy: Float[Array, "H W"],
+    q: Array,
+    steps: tuple[tuple[int, int], ...],
+    side_px: int,
+    half_px: int,
+) -> Float[Array, "H W"]:
+    # The mask's mean over a (2 half_px + 1)^2 box centred side_px pixels from each pixel along
+    # its quantised gradient towards the higher mask (the wheel's side of an edge), minus the
+    # same as far the other way.
+    size = 2 * half_px + 1
+    box = jax.lax.reduce_window(m, 0.0, jax.lax.add, (size, size), (1, 1), "SAME") / size**2
+    out = jnp.zeros_like(m)
+    for i, (dy, dx) in enumerate(steps):
+        n = side_px if dy == 0 or dx == 0 else max(round(side_px / 1.41421356), 1)
+        ahead = _shift_by(box, n * dy, n * dx) - _shift_by(box, -n * dy, -n * dx)
+        forward = (gx * dx + gy * dy) >= 0
+        out = jnp.where(q == i, jnp.where(forward, ahead, -ahead), out)
+    return out
+
+
+def _ridge(mag: Float[Array, "H W"], q: Array) -> Bool[Array, "H W"]:
+    """Non-maximum suppression: where the gradient magnitude peaks across the edge."""
 
     def along(sign: int) -> Array:
-        shifted = [_shift(mag, sign * dy, sign * dx) for dy, dx in steps]
+        shifted = [_shift(mag, sign * dy, sign * dx) for dy, dx in STEPS]
         return jnp.where(
             q == 0,
             shifted[0],
             jnp.where(q == 1, shifted[1], jnp.where(q == 2, shifted[2], shifted[3])),
         )
 
-    e_f = along(1)
-    e_b = along(-1)
-    ridge = (mag >= e_f) & (mag > e_b) & (mag > _EDGE_MIN)
-    ridge = ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
+    ridge = (mag >= along(1)) & (mag > along(-1)) & (mag > _EDGE_MIN)
+    return ridge.at[:2].set(False).at[-2:].set(False).at[:, :2].set(False).at[:, -2:].set(False)
 
+
+def _thin(mask: Float[Array, "H W"], weak: Float[Array, ""], capacity: int) -> Bool[Array, "H W"]:
+    """The ridge of ``mask``'s outline thinned to fit ``capacity`` points.
+
+    Points are stored in raster order, so an overflowing ridge would keep the top of the image
+    and drop the rest: a dim frame whose textured wall has patches of the wheel's colour
+    filled the capacity above the wheel, and the rim was lost in every frame of the recording.
+    First the weak ridges go (gradient at most ``weak``: a soft mask's ripples in textured
+    soil or wall, points of hardly any weight). Then, a speckle's or a patch's edge has no solid
+    wheel a few pixels inside it, a pinhole's in the wheel's face no empty space a few pixels
+    outside it; the wheel's outline (rim, lugs, boundary) has both. So while the ridge stays
+    crowded only points with that contrast stay, judged further out and over larger boxes at
+    each level of :data:`CROWD_LEVELS`. Called only on a crowded ridge: an uncrowded one is
+    kept whole, bit for bit.
+    """
+
+    m = smooth(mask)
+    gx, gy, mag, q = _gradients(m)
+    kept = _ridge(mag, q) & (mag > weak)
+    for side_px, half_px in CROWD_LEVELS:
+        sharp = _edge_contrast(m, gx, gy, q, STEPS, side_px, half_px) > CROWD_CONTRAST
+        kept = kept & ((jnp.sum(kept) <= capacity) | sharp)
+    return kept
+
+
+def extract_outline(
+    mask: Float[Array, "H W"], settings: SoftSettings, capacity: int | None = None
+) -> Outline:
+    """Sub-pixel outline points of a soft mask. ``capacity`` is static."""
+    s = settings.astype(mask.dtype)
+    height, width = mask.shape
+    k = default_capacity(height, width) if capacity is None else capacity
+    m = smooth(mask)
+    gx, gy, mag, q = _gradients(m)
+    ridge = _ridge(mag, q)
     flat, count = compact(ridge.ravel(), k)
+    # Crowded (more ridge points than the capacity): thinned (see _thin), all of it done again
+    # from the mask in a lax.cond, so an uncrowded frame (on a CPU, frame by frame) pays
+    # nothing more.
+    flat, count = jax.lax.cond(
+        count > k,
+        lambda: compact(_thin(mask, s.edge_level - 2.0 * s.edge_softness, k).ravel(), k),
+        lambda: (flat, count),
+    )
+    steps = STEPS
     valid = jnp.arange(k, dtype=count.dtype) < count
     rows = flat // width
     cols = flat % width
     e0 = mag[rows, cols]
-    ef = e_f[rows, cols]
-    eb = e_b[rows, cols]
     qq = q[rows, cols]
+    # The magnitude one step ahead and behind across the edge (edge-replicated).
+    dy_, dx_ = (jnp.array([st[i] for st in steps], jnp.int32)[qq] for i in (0, 1))
+    ef = mag[jnp.clip(rows + dy_, 0, height - 1), jnp.clip(cols + dx_, 0, width - 1)]
+    eb = mag[jnp.clip(rows - dy_, 0, height - 1), jnp.clip(cols - dx_, 0, width - 1)]
     # Parabola through (-1, eb), (0, e0), (1, ef): vertex offset in steps along the direction.
     curv = eb - 2.0 * e0 + ef
     ok = curv < -1e-9
