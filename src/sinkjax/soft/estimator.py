@@ -28,6 +28,7 @@ from .rim import RecordingRim, RimChoice, choose_circle
 from .segmentation import Rect, soft_open
 from .segmenter import Segmenter
 from .settings import SoftSettings
+from .shadow_cut import shadow_cut, spills
 from .soil_step import soil_step
 from .uncertainty import UncertaintyModel, covariance, measurement_std
 
@@ -145,6 +146,15 @@ def finish(
         lambda: soil_step(image, mask, (c.cx_px, c.cy_px, c.r_px)),
         lambda: (mask, jnp.zeros((), bool)),
     )
+    # A mask that runs on from the face into the wheel's shadow on the soil is cut at the
+    # shadow's top, the soil line (soft.shadow_cut; the cheap ring test first).
+    disc = (c.cx_px, c.cy_px, c.r_px)
+    mask, cut = jax.lax.cond(
+        (choice.prior_weight > 0) & ~moved & spills(mask, disc),
+        lambda: shadow_cut(image, mask, disc),
+        lambda: (mask, jnp.zeros((), bool)),
+    )
+    moved = moved | cut
     outline = jax.lax.cond(
         moved,
         lambda: refine_outline(image, extract_outline(mask, s), s),

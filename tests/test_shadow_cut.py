@@ -1,0 +1,100 @@
+"""The shadow's cut (soft.shadow_cut) against the renderer's exact soil surface."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sinkjax import synth
+from sinkjax.soft.adaptive import AdaptiveSegmenter
+from sinkjax.soft.estimator import rig_arrays
+from sinkjax.soft.shadow_cut import shadow_cut, spills
+from sinkjax.synth.scene import surface_y_px
+
+
+@jax.jit
+def _masks(image_u8: jax.Array, rect: jax.Array, disc: jax.Array) -> tuple:
+    image = image_u8.astype(jnp.float32) / 255.0
+    d = (disc[0], disc[1], disc[2])
+    mask = AdaptiveSegmenter().with_rim(image, rect, d)
+    return (mask, spills(mask, d), *shadow_cut(image, mask, d))
+
+
+def _frame(preset: str, seed: int, i: int) -> tuple:
+    """Frame ``i`` of a 3-frame recording at 320x240: truth, mask, spills, cut mask, changed,
+    the true soil surface per column."""
+    rng = np.random.default_rng(seed)
+    scenes = synth.recording_scenes(rng, 3, preset=preset, width=320, height=240)
+    rect = jnp.asarray(rig_arrays(synth.rig_for(scenes[0])).rect_px)
+    image, truth = synth.render(scenes[i], seed=seed * 10 + i)
+    disc = jnp.asarray([truth.center_x_px, truth.center_y_px, truth.radius_px], jnp.float32)
+    mask, spilt, cut, changed = (np.asarray(a) for a in _masks(jnp.asarray(image), rect, disc))
+    surface = surface_y_px(scenes[i], np.arange(scenes[i].width, dtype=np.float64))
+    return truth, mask, bool(spilt), cut, bool(changed), surface
+
+
+def _soil_line_offsets(mask: np.ndarray, truth: synth.Truth, surface: np.ndarray) -> np.ndarray:
+    """Per column of the true contact chord (the surface at least 4 px inside the rim): the
+    row below the mask's lowest wheel pixel between the centre and the rim, minus the surface."""
+    cx, cy, r = truth.center_x_px, truth.center_y_px, truth.radius_px
+    out = []
+    for c in range(int(cx - r) + 1, int(cx + r)):
+        rim_y = cy + np.sqrt(max(r * r - (c - cx) ** 2, 0.0))
+        if surface[c] > rim_y - 4 or surface[c] < cy:
+            continue
+        rows = np.nonzero(mask[int(cy) : int(rim_y), c] >= 0.5)[0]
+        out.append(int(cy) + (rows.max() + 1 if rows.size else 0) - surface[c])
+    return np.asarray(out)
+
+
+def _cut_tops(removed: np.ndarray, truth: synth.Truth, surface: np.ndarray) -> np.ndarray:
+    """Per column of the true contact chord where the cut removed anything: its first removed
+    row minus the surface (the wheel's own holes may lie at the soil line, so the mask's
+    lowest wheel pixel is no measure of where the cut is)."""
+    cx, cy, r = truth.center_x_px, truth.center_y_px, truth.radius_px
+    out = []
+    for c in range(int(cx - r) + 1, int(cx + r)):
+        rim_y = cy + np.sqrt(max(r * r - (c - cx) ** 2, 0.0))
+        rows = np.nonzero(removed[:, c])[0]
+        if surface[c] <= rim_y - 4 and surface[c] >= cy and rows.size:
+            out.append(rows.min() - surface[c])
+    return np.asarray(out)
+
+
+def test_cast_shadow_taken_for_wheel_is_cut_at_the_rendered_surface() -> None:
+    """A colour cast towards the wheel's hue: the mask runs on from the face into the wheel's
+    shadow on the soil, past the rim; the cut puts its soil line on the rendered surface."""
+    for i in (0, 1):
+        truth, mask, spilt, cut, changed, surface = _frame("hard_cast", 14, i)
+        assert spilt and changed and truth.sinkage_px > 8
+        assert np.median(_soil_line_offsets(mask, truth, surface)) > 5.0  # the shadow's edge
+        removed = cut != mask
+        tops = _cut_tops(removed, truth, surface)
+        assert tops.size > 30
+        assert abs(np.median(tops)) < 1.0
+        assert np.mean(np.abs(tops) <= 2.0) > 0.9
+        # What it removes is the soil below the surface (the wheel above it keeps all but a
+        # few pixels where the surface meets the rim), and below it no wheel is left.
+        above = np.arange(mask.shape[0])[:, None] < surface[None, :] - 3
+        assert np.sum(removed & above) < 0.01 * np.sum(removed)
+        rows, cols = np.nonzero(cut >= 0.5)
+        deep = rows > surface[cols] + 3 + 0.2 * truth.radius_px
+        assert np.sum(deep) < 0.05 * np.sum(mask[rows, cols] >= 0.5)
+
+
+def test_shaded_wheel_over_its_shadow_is_left_alone() -> None:
+    """One-sided light: the wheel's shaded side is as dark as its shadow on the soil, and the
+    mask spills into the shadow; colour alone would cut half the wheel away. The cut needs a
+    step in the image (the soil line is an occlusion edge; shading is smooth): none here, so
+    the mask is returned as it was, bit for bit."""
+    for i in (0, 1):
+        _, mask, spilt, cut, changed, _ = _frame("hard_shading", 0, i)
+        assert spilt and not changed
+        np.testing.assert_array_equal(cut, mask)
+
+
+def test_a_mask_that_does_not_spill_is_returned_unchanged() -> None:
+    truth, mask, spilt, cut, changed, _ = _frame("full", 3, 0)
+    assert truth.sinkage_px > 3 and not spilt and not changed
+    np.testing.assert_array_equal(cut, mask)
