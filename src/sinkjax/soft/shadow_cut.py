@@ -61,14 +61,14 @@ RIM_BAND = 0.12
 NEARER = 0.5
 # A column's run starts no further than this many radii below the centre.
 DEPTH = 1.5
-# The soil line's curve: a line through the columns within CENTRAL radii of the centre, then
+# The soil line's curve: the median of the columns within CENTRAL radii of the centre, then
 # quadratics through the columns within TRIM_PX of the last; a column agrees within TOL_PX.
 CENTRAL, TRIM_PX, TOL_PX = 0.3, 3.0, 2.0
-# A believable cut: this many columns cross the rim and agree; a step in the image at the cut
-# (median ratio of the vertical colour edge at it to the edge STEP_OFF_PX further out on each
-# side; rendered cast shadows 6-24, a cut through a wheel's smooth shading about 1); the soil
-# line this far (px) inside the rim somewhere.
-MIN_COLUMNS = 8
+# A believable cut: this many columns, and this share of those that cross the rim, cross it and
+# agree; a step in the image at the cut (median ratio of the vertical colour edge at it to the
+# edge STEP_OFF_PX further out on each side; rendered cast shadows 6-24, a cut through a wheel's
+# smooth shading about 1); the soil line this far (px) inside the rim somewhere.
+MIN_COLUMNS, MIN_AGREE = 8, 0.5
 STEP_OFF_PX, STEP_RATIO = 4, 3.0
 MIN_DEPTH_PX = 4.0
 
@@ -87,7 +87,7 @@ def _mean_colour(rgb: Float[Array, "H W 3"], where: Bool[Array, "H W"]) -> Array
 
 
 def _robust_curve(x: Array, t: Array, use: Array, cx: Array, r: Array) -> Array:
-    """A curve through the points (x, t) where ``use``: a line through those under the wheel's
+    """A curve through the points (x, t) where ``use``: the median of those under the wheel's
     bottom (within CENTRAL radii of its centre: the shadow's top is the soil line there),
     then a quadratic through all that lie within TRIM_PX of the last fit, three times over.
     Evaluated at every x, held at its value at the rim's side beyond it."""
@@ -99,7 +99,10 @@ def _robust_curve(x: Array, t: Array, use: Array, cx: Array, r: Array) -> Array:
         reg = 1e-6 * jnp.eye(n, dtype=t.dtype)
         return a[:, :n] @ jnp.linalg.solve(aw.T @ a[:, :n] + reg, aw.T @ t)
 
-    curve = solve((use & (jnp.abs(u) < CENTRAL)).astype(t.dtype), 2)
+    # The median, not a fit: a run that climbed a dark side must not tilt the start.
+    central = use & (jnp.abs(u) < CENTRAL)
+    curve = jnp.broadcast_to(jnp.nanmedian(jnp.where(central, t, jnp.nan)), t.shape)
+    curve = jnp.where(jnp.isnan(curve), 0.0, curve)
     for _ in range(3):
         curve = solve((use & (jnp.abs(t - curve) <= TRIM_PX)).astype(t.dtype), 3)
     return curve
@@ -171,7 +174,11 @@ def shadow_cut(
     right = jnp.max(jnp.where(agree, cols, -1))
     use = agree | (crossing & (cols >= left) & (cols <= right))
     top = jnp.clip(top, line - TOL_PX, line + TOL_PX)
-    changed = spills(mask, (cx, cy, r)) & apart & (jnp.sum(crossing & agree) >= MIN_COLUMNS)
+    # Most of the crossing columns must agree on the soil line.
+    n_cross = jnp.sum(crossing.astype(dt))
+    n_agree = jnp.sum((crossing & agree).astype(dt))
+    enough = n_agree >= jnp.maximum(MIN_COLUMNS, MIN_AGREE * n_cross)
+    changed = spills(mask, (cx, cy, r)) & apart & enough
     # The soil line is an occlusion edge, a step in the image; where the cut runs through a
     # smooth shading gradient instead (a wheel's own shaded side as dark as its shadow), the
     # colours were no guide: no cut.
