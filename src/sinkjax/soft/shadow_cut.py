@@ -45,7 +45,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from .segmentation import smooth
-from .soil_step import colour_edge
+from .soil_step import colour_edge, disc_grid
 
 # The ring beyond the rim (x the radius) and the mask's excess on its lower half over its upper
 # half above which a frame spills: the plausibility check's own (soft.checks NEAR_OUTER_RING,
@@ -127,12 +127,9 @@ def shadow_cut(
 ) -> tuple[Float[Array, "H W"], Bool[Array, ""]]:
     """(the mask with the shadow below its soil line cut away, whether it changed).
     ``disc``: the recording's rim (cx, cy, r) px; radius 0: nothing changes."""
-    cx, cy, r = (jax.lax.stop_gradient(a) for a in disc)
+    cx, cy, r, y, x, d2 = disc_grid(mask, disc)
     height, width = mask.shape
     dt = mask.dtype
-    y = jnp.arange(height, dtype=dt)[:, None]
-    x = jnp.arange(width, dtype=dt)[None, :]
-    d2 = (x - cx) ** 2 + (y - cy) ** 2
     wheel = jax.lax.stop_gradient(mask) >= 0.5
     rgb = jnp.stack([smooth(image[..., c]) for c in range(3)], axis=-1)
     face = wheel & (d2 < r * r) & (y < cy)

@@ -55,6 +55,19 @@ def colour_edge(image: Float[Array, "H W 3"]) -> Float[Array, "H W"]:
     return jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
 
 
+def disc_grid(
+    mask: Float[Array, "H W"],
+    disc: tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]],
+) -> tuple[Array, Array, Array, Float[Array, "H 1"], Float[Array, "1 W"], Float[Array, "H W"]]:
+    """The rim (cx, cy, r) without gradient, the pixel rows (H, 1) and columns (1, W) in the
+    mask's dtype, and each pixel's squared distance from the rim's centre."""
+    cx, cy, r = (jax.lax.stop_gradient(a) for a in disc)
+    height, width = mask.shape
+    y = jnp.arange(height, dtype=mask.dtype)[:, None]
+    x = jnp.arange(width, dtype=mask.dtype)[None, :]
+    return cx, cy, r, y, x, (x - cx) ** 2 + (y - cy) ** 2
+
+
 def soil_step(
     image: Float[Array, "H W 3"],
     mask: Float[Array, "H W"],
@@ -62,12 +75,9 @@ def soil_step(
 ) -> tuple[Float[Array, "H W"], Bool[Array, ""]]:
     """(the mask with its soil line moved down to the soil's step where the columns agree,
     whether it moved). ``disc``: the recording's rim (cx, cy, r) px; radius 0: nothing moves."""
-    cx, cy, r = (jax.lax.stop_gradient(a) for a in disc)
-    height, width = mask.shape
+    cx, cy, r, y, x, d2 = disc_grid(mask, disc)
+    height = mask.shape[0]
     dt = mask.dtype
-    y = jnp.arange(height, dtype=dt)[:, None]
-    x = jnp.arange(width, dtype=dt)[None, :]
-    d2 = (x - cx) ** 2 + (y - cy) ** 2
     reach = jnp.where(r > 0, r + RIM_OUT_PX, 0.0)
     lower = (y > cy) & (d2 < reach * reach)
     wheel = jax.lax.stop_gradient(mask) >= 0.5
