@@ -70,7 +70,7 @@ def test_soft_checks_pass_a_clean_frame_and_flag_a_mask_that_lost_part_of_the_lo
         assert int(bad.check) >= 1 and message(int(bad.check)).startswith(TESTS[int(bad.check) - 1])
 
 
-def test_a_cast_shadow_taken_for_wheel_is_flagged_not_read_as_no_contact() -> None:
+def test_a_cast_shadow_taken_for_wheel_is_cut_at_the_soil_line_or_flagged() -> None:
     # The rendered wheel's own mask, plus a half-ellipse below the rim that the mask calls
     # wheel (a dark cast shadow on the soil under a black wheel): the soil no longer shows
     # inside the rim, so without the outer ring the frame would read "no contact, 0 mm".
@@ -91,7 +91,24 @@ def test_a_cast_shadow_taken_for_wheel_is_flagged_not_read_as_no_contact() -> No
     # Measured as ``estimate`` measures a recording: with its rim held (soft.rim).
     rim = RecordingRim.fixed(cx, cy, r, 0.3)
     shadowed = jnp.where(jnp.asarray(shadow), 1.0, mask)
-    bad = _measure(image, shadowed, wheel_radius_mm=140.0, rim=rim)
+    # The image still shows the soil line (the soil's colour steps to the wheel's there): the
+    # mask is cut at it (soft.shadow_cut) and the frame measures the rendered truth.
+    cut = _measure(image, shadowed, wheel_radius_mm=140.0, rim=rim)
+    assert Status.from_code(int(cut.status)) == Status.OK
+    assert float(cut.sinkage_mm) == pytest.approx(truth.sinkage_mm, rel=0.03)
+    assert math.degrees(float(cut.theta1_rad)) == pytest.approx(truth.theta1_deg, abs=1.0)
+    assert math.degrees(float(cut.theta2_rad)) == pytest.approx(truth.theta2_deg, abs=1.0)
+    # Where the image does not part them (each column's soil under the spill painted the
+    # colour of its wheel just above the soil line: no step, no contrast), nothing is cut and
+    # the outer ring flags the frame.
+    wheel = np.asarray(mask) >= 0.5
+    painted = np.asarray(image).copy()
+    for c in range(painted.shape[1]):
+        rows = np.nonzero(wheel[:, c])[0]
+        if rows.size:
+            below = shadow[:, c] & ~wheel[:, c] & (np.arange(painted.shape[0]) > rows.max())
+            painted[below, c] = painted[max(rows.max() - 2, 0), c]
+    bad = _measure(jnp.asarray(painted), shadowed, wheel_radius_mm=140.0, rim=rim)
     assert Status.from_code(int(bad.status)) == Status.IMPLAUSIBLE
     assert int(bad.check) == len(TESTS)
     assert message(int(bad.check)).startswith("the wheel mask reaches into the soil")
