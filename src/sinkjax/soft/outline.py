@@ -45,9 +45,10 @@ def default_capacity(height: int, width: int) -> int:
 
 def _shift(a: Float[Array, "H W"], dy: int, dx: int) -> Float[Array, "H W"]:
     # out[i, j] = a[i + dy, j + dx] with edge replication.
-    p = jnp.pad(a, 1, mode="edge")
+    n = max(1, abs(dy), abs(dx))
+    p = jnp.pad(a, n, mode="edge")
     h, w = a.shape
-    return p[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+    return p[n + dy : n + dy + h, n + dx : n + dx + w]
 
 
 def compact(flags: Bool[Array, " N"], size: int) -> tuple[Array, Array]:
@@ -111,20 +112,11 @@ def _gradients(m: Float[Array, "H W"]) -> tuple[Array, Array, Array, Array]:
     return gx, gy, mag, q
 
 
-def _shift_by(a: Float[Array, "H W"], dy: int, dx: int) -> Float[Array, "H W"]:
-    # out[i, j] = a[i + dy, j + dx] with edge replication, for any small shift.
-    p = max(abs(dy), abs(dx))
-    h, w = a.shape
-    padded = jnp.pad(a, p, mode="edge")
-    return padded[p + dy : p + dy + h, p + dx : p + dx + w]
-
-
 def _edge_contrast(
     m: Float[Array, "H W"],
     gx: Float[Array, "H W"],
     gy: Float[Array, "H W"],
     q: Array,
-    steps: tuple[tuple[int, int], ...],
     side_px: int,
     half_px: int,
 ) -> Float[Array, "H W"]:
@@ -134,9 +126,9 @@ def _edge_contrast(
     size = 2 * half_px + 1
     box = jax.lax.reduce_window(m, 0.0, jax.lax.add, (size, size), (1, 1), "SAME") / size**2
     out = jnp.zeros_like(m)
-    for i, (dy, dx) in enumerate(steps):
+    for i, (dy, dx) in enumerate(STEPS):
         n = side_px if dy == 0 or dx == 0 else max(round(side_px / 1.41421356), 1)
-        ahead = _shift_by(box, n * dy, n * dx) - _shift_by(box, -n * dy, -n * dx)
+        ahead = _shift(box, n * dy, n * dx) - _shift(box, -n * dy, -n * dx)
         forward = (gx * dx + gy * dy) >= 0
         out = jnp.where(q == i, jnp.where(forward, ahead, -ahead), out)
     return out
@@ -176,7 +168,7 @@ def _thin(mask: Float[Array, "H W"], weak: Float[Array, ""], capacity: int) -> B
     gx, gy, mag, q = _gradients(m)
     kept = _ridge(mag, q) & (mag > weak)
     for side_px, half_px in CROWD_LEVELS:
-        sharp = _edge_contrast(m, gx, gy, q, STEPS, side_px, half_px) > CROWD_CONTRAST
+        sharp = _edge_contrast(m, gx, gy, q, side_px, half_px) > CROWD_CONTRAST
         kept = kept & ((jnp.sum(kept) <= capacity) | sharp)
     return kept
 
@@ -200,14 +192,13 @@ def extract_outline(
         lambda: compact(_thin(mask, s.edge_level - 2.0 * s.edge_softness, k).ravel(), k),
         lambda: (flat, count),
     )
-    steps = STEPS
     valid = jnp.arange(k, dtype=count.dtype) < count
     rows = flat // width
     cols = flat % width
     e0 = mag[rows, cols]
     qq = q[rows, cols]
     # The magnitude one step ahead and behind across the edge (edge-replicated).
-    dy_, dx_ = (jnp.array([st[i] for st in steps], jnp.int32)[qq] for i in (0, 1))
+    dy_, dx_ = (jnp.array([st[i] for st in STEPS], jnp.int32)[qq] for i in (0, 1))
     ef = mag[jnp.clip(rows + dy_, 0, height - 1), jnp.clip(cols + dx_, 0, width - 1)]
     eb = mag[jnp.clip(rows - dy_, 0, height - 1), jnp.clip(cols - dx_, 0, width - 1)]
     # Parabola through (-1, eb), (0, e0), (1, ef): vertex offset in steps along the direction.
@@ -215,7 +206,7 @@ def extract_outline(
     ok = curv < -1e-9
     off = jnp.where(ok, 0.5 * (eb - ef) / jnp.where(ok, curv, -1.0), 0.0)
     off = jnp.clip(off, -0.5, 0.5)
-    step = jnp.array(steps, dtype=mask.dtype)[qq]  # (K, 2) as (dy, dx)
+    step = jnp.array(STEPS, dtype=mask.dtype)[qq]  # (K, 2) as (dy, dx)
     x = cols.astype(mask.dtype) + off * step[:, 1]
     y = rows.astype(mask.dtype) + off * step[:, 0]
     g_x = gx[rows, cols]

@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from .checks import _mean_where, _on_ring
 from .segmentation import smooth
 from .soil_step import colour_edge, disc_grid
 
@@ -71,14 +72,6 @@ CENTRAL, TRIM_PX, TOL_PX = 0.3, 3.0, 2.0
 MIN_COLUMNS, MIN_AGREE = 8, 0.5
 STEP_OFF_PX, STEP_RATIO = 4, 3.0
 MIN_DEPTH_PX = 4.0
-
-
-def _ring_mean(m: Float[Array, "H W"], cx: Array, cy: Array, rho: Array, phi: Array) -> Array:
-    height, width = m.shape
-    x, y = cx + rho * jnp.cos(phi), cy + rho * jnp.sin(phi)
-    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    v = jax.scipy.ndimage.map_coordinates(m, [y, x], order=1, mode="nearest")
-    return jnp.sum(jnp.where(seen, v, 0.0)) / jnp.maximum(jnp.sum(seen.astype(v.dtype)), 1.0)
 
 
 def _mean_colour(rgb: Float[Array, "H W 3"], where: Bool[Array, "H W"]) -> Array:
@@ -116,7 +109,13 @@ def spills(
     m = jax.lax.stop_gradient(mask)
     phi = jnp.linspace(0.0, jnp.pi, N_RING, dtype=m.dtype)  # y down: the lower half
     rho = SPILL_RING * r
-    excess = _ring_mean(m, cx, cy, rho, phi) - _ring_mean(m, cx, cy, rho, phi + jnp.pi)
+    centre = jnp.stack([cx, cy]).astype(m.dtype)
+
+    def ring_mean(angles: Array) -> Array:
+        v, seen, _, _ = _on_ring(m, centre, jnp.asarray(1.0, m.dtype), rho, angles)
+        return _mean_where(v, seen)
+
+    excess = ring_mean(phi) - ring_mean(phi + jnp.pi)
     return (r > 0) & (excess > MAX_SPILL)
 
 
@@ -150,7 +149,7 @@ def shadow_cut(
     # edge mixes shadow and lit soil), and the run of shadow-coloured rows up from it, which
     # ends below the lowest wheel-coloured row above it.
     deep = window & wheel & shadowlike & (y < cy + DEPTH * r)
-    has = jnp.any(deep, axis=0)
+    in_run = jnp.any(deep, axis=0)
     lowest = height - 1 - jnp.argmax(deep[::-1], axis=0)
     stop = window & ~shadowlike & (y <= lowest[None, :].astype(dt))
     below_centre = jnp.floor(cy) + 1.0
@@ -158,7 +157,6 @@ def shadow_cut(
         jnp.any(stop, axis=0), (height - jnp.argmax(stop[::-1], axis=0)).astype(dt), below_centre
     )
     cols = jnp.arange(width)
-    in_run = has
     # The soil line's curve from the columns where the mask crosses the rim into the shadow
     # (their run starts beyond the rim); another column is cut only where its own run's top
     # agrees with that curve (a shaded side's run, say, climbs far above it).
