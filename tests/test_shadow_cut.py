@@ -98,3 +98,51 @@ def test_a_mask_that_does_not_spill_is_returned_unchanged() -> None:
     truth, mask, spilt, cut, changed, _ = _frame("full", 3, 0)
     assert truth.sinkage_px > 3 and not spilt and not changed
     np.testing.assert_array_equal(cut, mask)
+
+
+def _dim_frame(seed: int) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float], int]:
+    """A dim, noisy frame drawn here (not by the renderer): a lugged wheel lit from above over
+    flat soil at row 165, its shadow on the soil of nearly the wheel's colour; the mask has the
+    face, runs 12 px on under the soil line inside the rim, and holds 8x8 patches (JPEG blocks)
+    of the shadow beyond it, too sparse for the near ring among the lugs."""
+    h, w, cx, cy, r, soil = 240, 320, 160.0, 100.0, 85.0, 165
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    rho, angle = np.hypot(x - cx, y - cy), np.arctan2(y - cy, x - cx)
+    lugs = (rho <= 1.1 * r) & (np.abs((angle * 24 / (2 * np.pi)) % 1.0 - 0.5) < 0.12)
+    wheel = (rho <= r) | lugs
+    shadow = (np.hypot(x - cx - 12, y - cy - 25) <= r) & (y >= soil)
+    image = np.empty((h, w, 3))
+    image[:] = (0.08, 0.08, 0.08)
+    shade = np.clip(1.0 - 0.15 * (y - cy) / r, 0.85, 1.0)[..., None]
+    image[wheel] = (shade * np.array([0.115, 0.105, 0.143]))[wheel]
+    image[y >= soil] = (0.10, 0.09, 0.085)
+    image[shadow] = (0.079, 0.072, 0.084)
+    image += rng.normal(0.0, 0.02, image.shape)
+    mask = (wheel & (y < soil)).astype(np.float64)
+    blocks = np.kron(rng.random((h // 8, w // 8)) < 0.15, np.ones((8, 8))).astype(bool)
+    mask[blocks & shadow & (rho > r)] = 1.0
+    mask[shadow & (rho <= r) & (y < soil + 12)] = 1.0
+    return image, mask, (cx, cy, r), soil
+
+
+def test_a_sparse_spill_in_a_dim_noisy_frame_is_cut_at_the_soil_line() -> None:
+    """Low light: the shadow is only patches of wheel in the mask, and pixel noise breaks up
+    its run of shadow-coloured rows; the rings clear of the lugs see the spill, runs end at two
+    rows that are not the shadow's, and the cut lands on the drawn soil line."""
+    for seed in (0, 2, 3):
+        image, mask, disc, soil = _dim_frame(seed)
+        d = tuple(jnp.asarray(v) for v in disc)
+        assert bool(spills(jnp.asarray(mask), d))
+        cut, changed = (np.asarray(a) for a in shadow_cut(jnp.asarray(image), jnp.asarray(mask), d))
+        assert changed
+        removed = cut != mask
+        cx, cy, r = disc
+        tops = [
+            np.nonzero(removed[:, c])[0].min() - soil
+            for c in range(int(cx - r), int(cx + r))
+            if removed[:, c].any() and (c - cx) ** 2 + (soil + 5 - cy) ** 2 < r * r
+        ]
+        assert len(tops) > 80 and np.mean(np.abs(tops) <= 1) > 0.95
+        below = np.arange(mask.shape[0])[:, None] >= soil
+        assert np.sum((cut >= 0.5) & below) < 0.02 * np.sum((mask >= 0.5) & below)

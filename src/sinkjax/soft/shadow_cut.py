@@ -11,7 +11,9 @@ line, where the soil hides the wheel, is a step in the image.
 With the recording's rim known, a frame spills when the mask's mean on the lower half of a ring
 just beyond the rim exceeds its mean on the upper half by more than ``MAX_SPILL`` (the
 plausibility check's own test for a frame without contact: the wheel's lugs reach the ring all
-round, a shadow only below). Then:
+round, a shadow only below), or on a ring further out, clear of the lugs, by more than
+``MAX_SPARSE_SPILL`` (in a dim, noisy frame the shadow is only patches of wheel in the mask).
+Then:
 
 1. Colours (RGB blurred by about 1 px): the spill's (the mask's wheel beyond that ring), the
    face's (inside the rim above its centre) and the rim band's (``RIM_BAND`` of the radius just
@@ -19,8 +21,8 @@ round, a shadow only below). Then:
    is the shadow's where it lies at most ``NEARER`` times as far from the spill's colour as from
    the wheel's nearest: the shaded lower rim band lies between the lit wheel and the shadow.
 2. Each column under the rim: from the mask's lowest wheel pixel of the shadow's colour (no
-   deeper than ``DEPTH`` radii below the centre) a run of shadow-coloured rows upwards; its top is
-   the column's soil line.
+   deeper than ``DEPTH`` radii below the centre) a run of shadow-coloured rows upwards, ended by
+   two rows in a row that are not (one alone is pixel noise); its top is the column's soil line.
 3. The soil is one surface: a line through the columns under the wheel's bottom (``CENTRAL``)
    whose run starts beyond the rim, then a quadratic through those within ``TRIM_PX`` of it, three
    times over. A column is cut where its own top lies within ``TOL_PX`` of that curve, or where it
@@ -28,8 +30,9 @@ round, a shadow only below). Then:
    band as dark as the shadow).
 4. Only if the cut is believable: at least ``MIN_COLUMNS`` columns agree, the image has a step at
    the cut (the median ratio of the vertical colour edge there to the edge ``STEP_OFF_PX``
-   further out is at least ``STEP_RATIO``: a cut through the smooth shading of a wheel's dark side
-   has none), and the soil line lies at least ``MIN_DEPTH_PX`` inside the rim somewhere (a
+   further out is at least ``STEP_RATIO``, twice: a cut through the smooth shading of a wheel's
+   dark side has none, a ratio about 1, and pixel noise in a dim frame holds a real step's ratio
+   down to 2-3), and the soil line lies at least ``MIN_DEPTH_PX`` inside the rim somewhere (a
    shallower contact is not measured through a shadow; it stays flagged).
 
 From each cut column's soil line down, the column is soil. A frame that does not spill, or whose
@@ -52,6 +55,10 @@ from .soil_step import colour_edge, disc_grid
 # half above which a frame spills: the plausibility check's own (soft.checks NEAR_OUTER_RING,
 # MAX_OUTER_WHEEL); samples on the half ring.
 SPILL_RING, MAX_SPILL, N_RING = 1.08, 0.1, 90
+# And rings further out, clear of the lugs (which put wheel on the near ring all round, so an
+# excess there is the spill's alone): a sparse spill (a dim frame whose shadow is only patches
+# of wheel in the mask) spills where its excess on any of them exceeds half MAX_SPILL.
+OUTER_RINGS, MAX_SPARSE_SPILL = (1.12, 1.16, 1.2), 0.05
 # The spill's colour must lie at least this far from the face's and the rim band's (RGB, 0-1
 # units: about 13 of 255).
 MIN_CONTRAST = 0.05
@@ -67,10 +74,11 @@ DEPTH = 1.5
 CENTRAL, TRIM_PX, TOL_PX = 0.3, 3.0, 2.0
 # A believable cut: this many columns, and this share of those that cross the rim, cross it and
 # agree; a step in the image at the cut (median ratio of the vertical colour edge at it to the
-# edge STEP_OFF_PX further out on each side; rendered cast shadows 6-24, a cut through a wheel's
-# smooth shading about 1); the soil line this far (px) inside the rim somewhere.
+# edge STEP_OFF_PX further out on each side; rendered cast shadows 6-24 in good light, 2-3 in
+# dim noisy frames, a cut through a wheel's smooth shading about 1); the soil line this far (px)
+# inside the rim somewhere.
 MIN_COLUMNS, MIN_AGREE = 8, 0.5
-STEP_OFF_PX, STEP_RATIO = 4, 3.0
+STEP_OFF_PX, STEP_RATIO = 4, 2.0
 MIN_DEPTH_PX = 4.0
 
 
@@ -108,15 +116,18 @@ def spills(
     cx, cy, r = disc
     m = jax.lax.stop_gradient(mask)
     phi = jnp.linspace(0.0, jnp.pi, N_RING, dtype=m.dtype)  # y down: the lower half
-    rho = SPILL_RING * r
     centre = jnp.stack([cx, cy]).astype(m.dtype)
 
-    def ring_mean(angles: Array) -> Array:
+    def ring_mean(angles: Array, rho: Array) -> Array:
         v, seen, _, _ = _on_ring(m, centre, jnp.asarray(1.0, m.dtype), rho, angles)
         return _mean_where(v, seen)
 
-    excess = ring_mean(phi) - ring_mean(phi + jnp.pi)
-    return (r > 0) & (excess > MAX_SPILL)
+    def excess(ring: float) -> Array:
+        rho = ring * r
+        return ring_mean(phi, rho) - ring_mean(phi + jnp.pi, rho)
+
+    sparse = jnp.max(jnp.stack([excess(ring) for ring in OUTER_RINGS]))
+    return (r > 0) & ((excess(SPILL_RING) > MAX_SPILL) | (sparse > MAX_SPARSE_SPILL))
 
 
 def shadow_cut(
@@ -151,7 +162,11 @@ def shadow_cut(
     deep = window & wheel & shadowlike & (y < cy + DEPTH * r)
     in_run = jnp.any(deep, axis=0)
     lowest = height - 1 - jnp.argmax(deep[::-1], axis=0)
-    stop = window & ~shadowlike & (y <= lowest[None, :].astype(dt))
+    # It ends at two rows in a row that are not the shadow's: one alone is noise (a dim frame's
+    # pixel noise puts a few per cent of the shadow's pixels nearer the wheel's colour).
+    other = window & ~shadowlike
+    other = other & jnp.concatenate([jnp.zeros_like(other[:1]), other[:-1]], axis=0)
+    stop = other & (y <= lowest[None, :].astype(dt))
     below_centre = jnp.floor(cy) + 1.0
     top = jnp.where(
         jnp.any(stop, axis=0), (height - jnp.argmax(stop[::-1], axis=0)).astype(dt), below_centre
