@@ -22,6 +22,25 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+# The library compiles with sinkjax.xla.FAST_COMPILE_OPTIONS where XLA knows them; the tests' own
+# jitted functions get them through XLA_FLAGS. An unknown flag there aborts the process, so one
+# subprocess probes it, once (the xdist workers inherit the answer); test_xla checks the flag
+# is the library's option.
+FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"
+if "SINKJAX_TEST_FAST_COMPILE" not in os.environ:
+    import subprocess
+    import sys
+
+    _flags = f"{os.environ['XLA_FLAGS']} {FAST_COMPILE_FLAG}"
+    _probe = subprocess.run(
+        [sys.executable, "-c", "import jax; jax.jit(lambda x: x + 1)(1.0)"],
+        env={**os.environ, "XLA_FLAGS": _flags},
+        capture_output=True,
+        check=False,
+    )
+    os.environ["SINKJAX_TEST_FAST_COMPILE"] = "1" if _probe.returncode == 0 else "0"
+    if _probe.returncode == 0:
+        os.environ["XLA_FLAGS"] = _flags
 # Under `pytest -n N` (make test) the N workers share the machine's cores: each keeps to one
 # thread (XLA's and torch's pools, and those of the subprocesses it starts), or their pools
 # oversubscribe the cores and every test slows down several times.
@@ -32,7 +51,7 @@ if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get("SINKJAX_TEST_THREAD
 # The command line keeps compiled code in ~/.cache; tests that want it name a temporary folder.
 os.environ.setdefault("SINKJAX_CACHE_DIR", "off")
 
-import jax
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")

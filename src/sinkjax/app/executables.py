@@ -31,6 +31,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from ..xla import jit
+
 log = logging.getLogger("sinkjax")
 
 # The first line of every file; a new layout gets a new number (old files are then ignored).
@@ -119,15 +121,13 @@ class ExecutableCache:
         self._ready: dict[str, Callable[..., Any]] = {}
 
     def __call__(self, name: str, fn: Any, args: tuple[Any, ...]) -> Callable[..., Any]:
-        import jax
-
         key = cache_key(name, args)
         ready = self._ready.get(key)
         if ready is None:
             exported = self._load(key, args)
             if exported is None:
                 exported = self._export(key, fn, args)
-            ready = self._ready[key] = jax.jit(exported.call)
+            ready = self._ready[key] = jit(exported.call)
         return ready
 
     def path(self, key: str) -> Path:

@@ -13,7 +13,6 @@ of a size: compiling the two at once on two cores).
 from __future__ import annotations
 
 import contextlib
-import functools
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -26,6 +25,7 @@ from jaxtyping import Array, Float, PRNGKeyArray, UInt8
 from ..geometry import travel_sign
 from ..rig import rect_problem
 from ..soft.rim import RecordingRim
+from ..xla import jit
 from .augment import DEFAULT_CONFIG, AugmentConfig
 from .loss import LossAndGrad, LossRig, frame_losses
 
@@ -94,7 +94,7 @@ def loss_rig(
 
 
 # No rig statics: compiled once per image size, frame count and augmentation setting.
-@functools.partial(jax.jit, static_argnames=("use_augment", "config"))
+@jit(static_argnames=("use_augment", "config"))
 def _loss_and_grad(
     raw: Array, images_u8: Array, targets: Array, key: PRNGKeyArray, rim: RecordingRim | None,
     rig: LossRig, use_augment: bool, config: AugmentConfig,
@@ -105,7 +105,7 @@ def _loss_and_grad(
     )  # fmt: skip
 
 
-@jax.jit
+@jit
 def _loss_value(
     raw: Array, images_u8: Array, targets: Array, rim: RecordingRim | None, rig: LossRig
 ) -> LossAndGrad:

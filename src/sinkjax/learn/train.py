@@ -29,6 +29,7 @@ from ..calibration.loss import boundary_contrast, mask_frame_loss
 from ..soft.adaptive import default_segmenter
 from ..soft.checks import MAX_HALF_RING_DISAGREEMENT, ring_disagreement
 from ..status import Status
+from ..xla import filter_jit
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter
 
@@ -93,7 +94,7 @@ def _n_cells(batch: FrameBatch) -> Array:
     return jnp.maximum(jnp.sum(jnp.isfinite(batch.targets)), 1).astype(batch.targets.dtype)
 
 
-@eqx.filter_jit
+@filter_jit
 def loss_and_grad(
     seg: LearnedSegmenter,
     batch: FrameBatch,
@@ -133,7 +134,7 @@ def loss_and_grad(
     return jnp.sum(losses) / n, grad, seen
 
 
-@eqx.filter_jit
+@filter_jit
 def evaluate(seg: LearnedSegmenter, batch: FrameBatch) -> tuple[Array, Array]:
     """(mean loss per labelled cell, per-frame (values 3, status) (N, 4)) without gradients."""
     zero = jnp.zeros((), batch.targets.dtype)
@@ -150,7 +151,7 @@ def _batches_of(batches: Sequence[FrameBatch], size: int, rng: np.random.Generat
     return batches[g].take(np.sort(rng.choice(n, size=min(size, n), replace=False)))
 
 
-@eqx.filter_jit
+@filter_jit
 def _imitation_step(
     seg: LearnedSegmenter,
     state: optax.OptState,
@@ -187,7 +188,7 @@ def _adam_step(
     return eqx.apply_updates(seg, updates), state
 
 
-@eqx.filter_jit
+@filter_jit
 def _batch_loss(
     seg: LearnedSegmenter, batch: FrameBatch, weights: tuple[Array, Array, Array]
 ) -> Array:

@@ -330,8 +330,9 @@ def _rim_guess_fn() -> Callable[..., Any]:
     from ..soft.outline import extract_outline, refine_outline
     from ..soft.segmentation import wheel_mask
     from ..soft.settings import SoftSettings
+    from ..xla import jit
 
-    @functools.partial(jax.jit, static_argnames=("rect",))
+    @jit(static_argnames=("rect",))
     def guess(image_u8, seg, rect):
         image = image_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
         settings = SoftSettings().astype(image.dtype)

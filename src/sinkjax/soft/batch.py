@@ -23,6 +23,7 @@ from jaxtyping import Array
 from ..result import FrameResult, failed
 from ..rig import Rig, rect_problem, rim_hint_range_px
 from ..status import Status
+from ..xla import jit
 from .adaptive import default_segmenter
 from .estimator import Prepared, RigArrays, SoftEstimate, finish, prepare, rechoose, rig_arrays
 from .hough import radius_range_px
@@ -65,12 +66,12 @@ def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstim
 
 # No static arguments: these compile once per image size (and batch size) and segmenter
 # structure, whatever the rig, the rim and the segmenter's parameter values.
-_prepare_one = jax.jit(_prepare_u8)
-_rechoose_one = jax.jit(rechoose)
-_finish_one = jax.jit(_finish_u8)
-_prepare_batch = jax.jit(jax.vmap(_prepare_u8, in_axes=(0, None, None, None)))
-_rechoose_batch = jax.jit(jax.vmap(rechoose, in_axes=(0, None)))
-_finish_batch = jax.jit(jax.vmap(_finish_u8, in_axes=(0, 0, None)))
+_prepare_one = jit(_prepare_u8)
+_rechoose_one = jit(rechoose)
+_finish_one = jit(_finish_u8)
+_prepare_batch = jit(jax.vmap(_prepare_u8, in_axes=(0, None, None, None)))
+_rechoose_batch = jit(jax.vmap(rechoose, in_axes=(0, None)))
+_finish_batch = jit(jax.vmap(_finish_u8, in_axes=(0, 0, None)))
 
 # (name, jitted function, example arguments) -> the callable to run on arguments of that shape.
 CompiledProvider = Callable[[str, Any, tuple[Any, ...]], Callable[..., Any]]

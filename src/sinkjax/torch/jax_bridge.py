@@ -27,6 +27,7 @@ from ..rig import SEG_FIELDS, SegmentationParams
 from ..soft.estimator import SoftEstimate, measure_from_mask
 from ..soft.segmentation import soft_open, wheel_mask
 from ..soft.uncertainty import UncertaintyModel
+from ..xla import jit
 
 VALUE_NAMES = (
     "sinkage_mm",
@@ -113,9 +114,9 @@ class JittedBatch:
             values, vjp, status = jax.vjp(fn, *xs, has_aux=True)
             return values, status, vjp
 
-        self.forward = jax.jit(fn)
-        self.forward_vjp = jax.jit(with_vjp)
-        self.backward = jax.jit(lambda vjp, g: vjp(g))
+        self.forward = jit(fn)
+        self.forward_vjp = jit(with_vjp)
+        self.backward = jit(lambda vjp, g: vjp(g))
 
 
 @functools.cache

@@ -1,0 +1,107 @@
+"""How sinkjax compiles: ``jax.jit`` / ``eqx.filter_jit`` with XLA options that make the soft
+method compile faster on a CPU, chosen once per process at the first compile.
+
+The soft method is one large program (segmentation, outline, rim search, two Levenberg-Marquardt
+solves, covariance, checks: about 30 000 HLO instructions before optimisation), and on a CPU
+most of a cold start is XLA compiling it. XLA's newer CPU fusion emitters
+(``xla_cpu_use_fusion_emitters``, on by default) generate each fusion through MLIR, which costs
+more compile time than the classic elemental emitters and buys nothing measurable here.
+Measured by ``experiments/compile_options.py`` (one thread, as each ``make test`` worker has; 2
+CPU cores, jax 0.10.2): the forward pass compiles in 0.70-0.77x the time, its gradient in
+0.73-0.82x, it runs as fast (0.98-1.01x), and every output agrees to 6e-14 in float64. In
+float32 (the command line's precision) the rounding differs and the solve carries it on: over
+the 80 frames of ``experiments/benchmark.py --seed 11 --recordings 5`` no status changed and
+values moved by at most 3e-5 mm (z0), 0.005 deg (angles) and 2e-4 mm in a sigma, under 0.01
+sigma; its summary table is the same. The persistent cache keeps the two apart (the options
+are part of its key). The test suite took 18 min instead of 23.
+
+An XLA that does not know the option (an older or newer jaxlib) gets none: the first compile
+probes it with a one-operation function, and an unknown option is a Python error there, not a
+crash. ``SINKJAX_FAST_COMPILE=0`` turns the options off (XLA's defaults throughout).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Callable
+from typing import Any
+
+#: The XLA debug options sinkjax compiles with, where the installed XLA knows them.
+FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
+#: Set to "0" to compile with XLA's defaults.
+ENV_SWITCH = "SINKJAX_FAST_COMPILE"
+
+
+@functools.cache
+def compiler_options() -> dict[str, Any]:
+    """The options every sinkjax ``jit`` passes to XLA: :data:`FAST_COMPILE_OPTIONS` where this
+    XLA accepts them (probed once per process), else none. Initialises JAX's backend, so it is
+    called at the first compile, never at import."""
+    if os.environ.get(ENV_SWITCH, "1").strip() == "0":
+        return {}
+    import jax
+    import numpy as np
+
+    try:
+        jax.jit(_probe, compiler_options=FAST_COMPILE_OPTIONS).lower(np.float32(0)).compile()
+    except Exception:  # any XLA that refuses the option: compile with none
+        return {}
+    return dict(FAST_COMPILE_OPTIONS)
+
+
+def _probe(x: Any) -> Any:
+    return x + 1
+
+
+class _LazyJit:
+    """A jitted function built at its first use (call or attribute, e.g. ``lower``), when the
+    compile options can be probed without initialising JAX at import."""
+
+    def __init__(self, make: Callable[[dict[str, Any]], Any], fun: Callable[..., Any]) -> None:
+        self._make = make
+        self._jitted: Any = None
+        functools.update_wrapper(self, fun)
+
+    def _get(self) -> Any:
+        if self._jitted is None:
+            self._jitted = self._make(compiler_options())
+        return self._jitted
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self._get()(*args, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") or name in ("_make", "_jitted"):
+            raise AttributeError(name)
+        return getattr(self._get(), name)
+
+
+def jit(fun: Callable[..., Any] | None = None, /, **kwargs: Any) -> Any:
+    """``jax.jit(fun, **kwargs)`` with :func:`compiler_options`; as a decorator too, with or
+    without keyword arguments (``@jit``, ``@jit(static_argnames=...)``)."""
+    if fun is None:
+        return functools.partial(jit, **kwargs)
+    f = fun
+
+    def make(options: dict[str, Any]) -> Any:
+        import jax
+
+        return jax.jit(f, compiler_options=options or None, **kwargs)
+
+    return _LazyJit(make, f)
+
+
+def filter_jit(fun: Callable[..., Any] | None = None, /, **kwargs: Any) -> Any:
+    """``eqx.filter_jit(fun, **kwargs)`` with :func:`compiler_options`."""
+    if fun is None:
+        return functools.partial(filter_jit, **kwargs)
+    f = fun
+
+    def make(options: dict[str, Any]) -> Any:
+        import equinox as eqx
+
+        filter_jit_: Any = eqx.filter_jit  # its stub lists no jax.jit keywords
+        return filter_jit_(f, compiler_options=options or None, **kwargs)
+
+    return _LazyJit(make, f)

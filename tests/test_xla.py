@@ -1,0 +1,107 @@
+"""sinkjax.xla: the library's jitted functions compile with XLA options that cut compile time,
+give XLA's default numbers, and fall back to no options where XLA does not know them."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sinkjax import xla
+from sinkjax.soft.hough import hough_rim
+from sinkjax.soft.outline import extract_outline, refine_outline
+from sinkjax.soft.settings import SoftSettings
+from sinkjax.soft.shadow_cut import shadow_cut
+
+
+@pytest.fixture
+def fresh_options() -> Iterator[None]:
+    """compiler_options() probed again in the test, and again after it."""
+    xla.compiler_options.cache_clear()
+    yield
+    xla.compiler_options.cache_clear()
+
+
+def _stages(image: jax.Array, mask: jax.Array) -> tuple[jax.Array, ...]:
+    # Gathers, scatters, scans, reduce-windows and a while loop: the kinds of operation the soft
+    # method is made of.
+    s = SoftSettings().astype(mask.dtype)
+    outline = refine_outline(image, extract_outline(mask, s), s)
+    c = hough_rim(outline, *mask.shape, s)
+    cut, moved = shadow_cut(image, mask, (c.cx_px, c.cy_px, c.r_px))
+    return outline.x_px, outline.y_px, outline.weight, c.cx_px, c.cy_px, c.r_px, cut, moved
+
+
+def test_options_give_the_numbers_of_xla_defaults(draw_wheel) -> None:
+    image = jnp.asarray(draw_wheel(width=160, height=120, cx=80.3, cy=50.6, r=42.7), jnp.float64)
+    image = image / 255.0
+    mask = jax.nn.sigmoid((image[..., 0] - image[..., 1] - 0.3) * 20.0)
+    assert xla.compiler_options() == xla.FAST_COMPILE_OPTIONS  # this project's jax knows them
+    fast = xla.jit(_stages)(image, mask)
+    # The tests' XLA_FLAGS carry the option too: the reference asks for XLA's default.
+    default = {k: not v for k, v in xla.FAST_COMPILE_OPTIONS.items()}
+    ref = jax.jit(_stages, compiler_options=default)(image, mask)
+    assert float(jnp.sum(fast[2])) > 50  # an outline to compare
+    for a, b in zip(fast, ref, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+
+
+def test_an_option_xla_does_not_know_means_none(
+    fresh_options: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(xla, "FAST_COMPILE_OPTIONS", {"xla_no_such_option_here": True})
+    assert xla.compiler_options() == {}
+    assert float(xla.jit(lambda x: 2.0 * x)(jnp.asarray(3.0))) == 6.0
+
+
+def test_the_switch_turns_the_options_off(
+    fresh_options: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(xla.ENV_SWITCH, "0")
+    assert xla.compiler_options() == {}
+    monkeypatch.setenv(xla.ENV_SWITCH, "1")
+    xla.compiler_options.cache_clear()
+    assert xla.compiler_options() == xla.FAST_COMPILE_OPTIONS
+
+
+def test_jit_is_a_jitted_function_in_each_form() -> None:
+    def f(x: jax.Array, n: int) -> jax.Array:
+        return x * n
+
+    plain = xla.jit(f, static_argnames="n")
+    assert plain.__name__ == "f" and plain.__wrapped__ is f
+    assert float(plain(jnp.asarray(2.0), n=3)) == 6.0
+    assert "multiply" in plain.lower(jnp.asarray(2.0), n=3).as_text()
+    plain(jnp.asarray(5.0), n=3)
+    assert plain._cache_size() == 1  # one compile for one shape and static value
+    plain(jnp.asarray(5.0), n=4)
+    assert plain._cache_size() == 2
+
+    @xla.jit
+    def g(x: jax.Array) -> jax.Array:
+        return x + 1
+
+    @xla.jit(static_argnames="k")
+    def h(x: jax.Array, k: int) -> jax.Array:
+        return x - k
+
+    @xla.filter_jit
+    def e(x: jax.Array, k: int) -> jax.Array:  # filter_jit: the int is static
+        return x * k
+
+    assert float(g(jnp.asarray(1.0))) == 2.0
+    assert float(h(jnp.asarray(1.0), k=3)) == -2.0
+    assert float(e(jnp.asarray(2.0), 5)) == 10.0
+
+
+def test_the_tests_flag_is_the_librarys_option() -> None:
+    from conftest import FAST_COMPILE_FLAG
+
+    name, value = FAST_COMPILE_FLAG.removeprefix("--").split("=")
+    assert xla.FAST_COMPILE_OPTIONS == {name: value == "true"}
+    if os.environ.get("SINKJAX_TEST_FAST_COMPILE") == "1":
+        assert FAST_COMPILE_FLAG in os.environ["XLA_FLAGS"]
