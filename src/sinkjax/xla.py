@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -61,18 +62,21 @@ class _LazyJit:
     def __init__(self, make: Callable[[dict[str, Any]], Any], fun: Callable[..., Any]) -> None:
         self._make = make
         self._jitted: Any = None
+        self._lock = threading.Lock()  # two threads' first calls build one jitted function
         functools.update_wrapper(self, fun)
 
     def _get(self) -> Any:
         if self._jitted is None:
-            self._jitted = self._make(compiler_options())
+            with self._lock:
+                if self._jitted is None:
+                    self._jitted = self._make(compiler_options())
         return self._jitted
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         return self._get()(*args, **kwargs)
 
     def __getattr__(self, name: str) -> Any:
-        if name.startswith("__") or name in ("_make", "_jitted"):
+        if name.startswith("__") or name in ("_make", "_jitted", "_lock"):
             raise AttributeError(name)
         return getattr(self._get(), name)
 
