@@ -2,7 +2,7 @@
 method compile faster on a CPU, chosen once per process at the first compile.
 
 The soft method is one large program (segmentation, outline, rim search, two Levenberg-Marquardt
-solves, covariance, checks: about 30 000 HLO instructions before optimisation), and on a CPU
+solves, covariance, checks: about 29 000 lines of HLO before optimisation), and on a CPU
 most of a cold start is XLA compiling it. XLA's newer CPU fusion emitters
 (``xla_cpu_use_fusion_emitters``, on by default) generate each fusion through MLIR, which costs
 more compile time than the classic elemental emitters and buys nothing measurable here.
