@@ -839,13 +839,14 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
         rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=float(rig.wheel_radius_mm)
     )
     # One compiled function for the gradient and the differences (value and grad: one compile).
-    loss_grad = jax.jit(jax.value_and_grad(lambda r: C.frame_loss(r, image, target, **static)[0]))
-    g = np.asarray(loss_grad(raw)[1])
+    # The image is an argument: closed over, XLA would constant-fold the work done on it.
+    loss_grad = jax.jit(jax.value_and_grad(lambda r, im: C.frame_loss(r, im, target, **static)[0]))
+    g = np.asarray(loss_grad(raw, image)[1])
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
 
     def central(i: int, h: float) -> float:
         e = jnp.zeros(len(C.RAW_NAMES)).at[i].set(h)
-        return (float(loss_grad(raw + e)[0]) - float(loss_grad(raw - e)[0])) / (2 * h)
+        return (float(loss_grad(raw + e, image)[0]) - float(loss_grad(raw - e, image)[0])) / (2 * h)
 
     checked = 0
     for i in range(len(C.RAW_NAMES)):

@@ -145,16 +145,17 @@ def test_gradients_pass_through_a_fixed_recording_rim(rendered) -> None:
 
     # P_d of saturation moves this frame's soil line (the soil is the less saturated side);
     # P_a of saturation would not (no pixel near its band edge: a gradient of 1e-12).
-    def sinkage(p_d_sat: jnp.ndarray) -> jnp.ndarray:
+    def sinkage(p_d_sat: jnp.ndarray, im: jnp.ndarray) -> jnp.ndarray:
         seg = dataclasses.replace(rig.segmentation, p_d_sat=p_d_sat)
-        return measure(image, seg, rim=rim, **kw).sinkage_mm
+        return measure(im, seg, rim=rim, **kw).sinkage_mm
 
     # One compiled function for the gradient and the differences (value and grad: one compile,
-    # where grad of a jitted function and the function itself compile three).
+    # where grad of a jitted function and the function itself compile three). The image is an
+    # argument: closed over, XLA would constant-fold the work done on it.
     value_grad = jax.jit(jax.value_and_grad(sinkage))
     x0 = jnp.asarray(float(rig.segmentation.p_d_sat), jnp.float64)
-    g = float(value_grad(x0)[1])
+    g = float(value_grad(x0, image)[1])
     h = 1e-3
-    fd = (float(value_grad(x0 + h)[0]) - float(value_grad(x0 - h)[0])) / (2 * h)
+    fd = (float(value_grad(x0 + h, image)[0]) - float(value_grad(x0 - h, image)[0])) / (2 * h)
     assert np.isfinite(g) and abs(fd) > 0.01  # mm per unit of P_d: a gradient to check
     assert g == pytest.approx(fd, rel=0.05, abs=1e-3)

@@ -119,24 +119,25 @@ def test_gradients_match_finite_differences(rendered) -> None:
     image = jnp.asarray(images[i], jnp.float64) / 255.0
     kw = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
 
-    def outputs(seg: SegmentationParams) -> tuple[jnp.ndarray, jnp.ndarray]:
-        e = measure(image, seg, **kw)
+    def outputs(seg: SegmentationParams, im: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        e = measure(im, seg, **kw)
         out = jnp.stack([e.sinkage_mm, e.theta1_rad, e.theta2_rad])
         return out, out
 
     # One compiled function gives the Jacobian and (its auxiliary output) the values for the
     # differences: the Jacobian of the jitted estimator from Python, and the estimator for the
-    # differences, would compile three programs.
+    # differences, would compile three programs. The image is an argument: closed over, XLA
+    # would constant-fold the work done on it.
     jac_and_values = jax.jit(jax.jacrev(outputs, has_aux=True))
     seg = rig.segmentation
-    jac = jac_and_values(seg)[0]
+    jac = jac_and_values(seg, image)[0]
     eps = 1e-6
     for name in ("p_d_sat", "p_a_hue", "temperature_sat"):
         plus = type(seg)(**{**seg.as_dict(), name: float(getattr(seg, name)) + eps})
         minus = type(seg)(**{**seg.as_dict(), name: float(getattr(seg, name)) - eps})
-        fd = (np.asarray(jac_and_values(plus)[1]) - np.asarray(jac_and_values(minus)[1])) / (
-            2 * eps
-        )
+        fd = (
+            np.asarray(jac_and_values(plus, image)[1]) - np.asarray(jac_and_values(minus, image)[1])
+        ) / (2 * eps)
         ad = np.asarray(getattr(jac, name))
         assert np.all(np.isfinite(ad))
         np.testing.assert_allclose(ad, fd, rtol=2e-3, atol=1e-5 * np.max(np.abs(fd)) + 1e-9)
