@@ -376,3 +376,36 @@ def test_bridge_from_image(frames) -> None:
     )
     est.sinkage_mm.sum().backward()
     assert all(torch.isfinite(v.grad) for v in seg.values())
+
+
+def test_bridge_compiles_once_for_every_rig_of_an_image_size(frames) -> None:
+    """The rig's numbers are traced arguments: two more rigs of the same image size (other
+    rectangle, travel, radius) compile nothing, and the sinkage and its sigma scale with the
+    wheel's radius (z0 = z0_px R / r) while the angles stay."""
+    import sinkjax.torch.jax_bridge as bridge
+
+    imgs, rig = frames
+    images = _chw(imgs)
+    values = rig.segmentation.as_dict()
+    seg = {n: float(values[n]) for n in st.SEG_FIELDS}  # no gradient: the forward function
+
+    def run(rect, travel, radius):
+        return st.measure_torch(images, seg=seg, rect=rect, travel=travel, wheel_radius_mm=radius)
+
+    a = run(rig.confidence_rect, rig.travel, rig.wheel_radius_mm)
+    forward = bridge.from_image_batch(None, 0).forward  # the one SinkageFromImage runs
+    compiled = forward._cache_size()
+    b = run(rig.confidence_rect, rig.travel, 2.0 * rig.wheel_radius_mm)
+    x, y, w, h = rig.confidence_rect
+    other = "left" if rig.travel == "right" else "right"
+    c = run((x + 1, y + 1, w - 2, h - 2), other, 0.5 * rig.wheel_radius_mm)
+    assert compiled >= 1 and forward._cache_size() == compiled
+    ok = (a.status == 0).numpy()
+    assert ok.sum() >= 2 and np.array_equal(b.status.numpy(), a.status.numpy())
+    for field in ("sinkage_mm", "sinkage_std_mm"):
+        np.testing.assert_allclose(
+            getattr(b, field).numpy()[ok], 2.0 * getattr(a, field).numpy()[ok], rtol=1e-9
+        )
+    for field in ("theta1_deg", "theta2_deg", "theta1_std_deg", "theta2_std_deg"):
+        np.testing.assert_allclose(getattr(b, field).numpy(), getattr(a, field).numpy(), rtol=1e-9)
+    assert c.status.shape == a.status.shape

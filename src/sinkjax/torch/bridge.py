@@ -66,13 +66,17 @@ class _JaxFunction(torch.autograd.Function):
 
     @staticmethod
     def _run(
-        ctx: Any, batch: _bridge.JittedBatch, n_batched: int, *inputs: Tensor
+        ctx: Any,
+        batch: _bridge.JittedBatch,
+        rig: _bridge.BridgeRig,
+        n_batched: int,
+        *inputs: Tensor,
     ) -> tuple[Tensor, Tensor]:
         dtype = _jax_float()
         xs = [_to_jax(t, dtype) for t in inputs]
         needs_grad = any(ctx.needs_input_grad[: len(inputs)])
         if needs_grad:
-            values, status, vjp = batch.forward_vjp(*xs)
+            values, status, vjp = batch.forward_vjp(rig, *xs)
             # A frame whose fit failed (non-finite parameters) makes the implicit-function linear
             # solve of the backward pass raise for the whole batch. Its gradient is 0 anyway
             # (nothing it reports is usable), so residuals are recomputed with such frames
@@ -87,7 +91,7 @@ class _JaxFunction(torch.autograd.Function):
                 else:
                     take = jnp.asarray(np.where(dead, healthy[0], np.arange(dead.size)))
                     swapped = [x[take] if k < n_batched else x for k, x in enumerate(xs)]
-                    vjp = batch.forward_vjp(*swapped)[2]
+                    vjp = batch.forward_vjp(rig, *swapped)[2]
             ctx.vjp = vjp
             ctx.dead = torch.from_numpy(dead).to(inputs[0].device)
             ctx.batch = batch
@@ -95,7 +99,7 @@ class _JaxFunction(torch.autograd.Function):
             # tensors lets torch's version counter catch an in-place edit before backward.
             ctx.save_for_backward(*inputs)
         else:
-            values, status = batch.forward(*xs)
+            values, status = batch.forward(rig, *xs)
         ctx.n_batched = n_batched
         out = _to_torch(values, inputs[0])
         st = torch.from_numpy(np.array(status)).to(dtype=torch.int64, device=inputs[0].device)
@@ -148,8 +152,8 @@ class SinkageFromMask(_JaxFunction):
         wheel_radius_mm: float,
         uncertainty: UncertaintyModel | None = None,
     ) -> tuple[Tensor, Tensor]:
-        batch = _bridge.from_mask_batch(travel, float(wheel_radius_mm), uncertainty)
-        return _JaxFunction._run(ctx, batch, 2, images, masks)
+        rig = _bridge.bridge_rig(None, travel, wheel_radius_mm)
+        return _JaxFunction._run(ctx, _bridge.from_mask_batch(uncertainty), rig, 2, images, masks)
 
     @staticmethod
     def backward(ctx: Any, g_values: Tensor, g_status: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
@@ -175,10 +179,9 @@ class SinkageFromImage(_JaxFunction):
         uncertainty: UncertaintyModel | None = None,
         open_radius_px: int = 0,
     ) -> tuple[Tensor, Tensor]:
-        batch = _bridge.from_image_batch(
-            tuple(rect), travel, float(wheel_radius_mm), uncertainty, open_radius_px
-        )
-        return _JaxFunction._run(ctx, batch, 1, images, seg_vector)
+        batch = _bridge.from_image_batch(uncertainty, open_radius_px)
+        rig = _bridge.bridge_rig(rect, travel, wheel_radius_mm)
+        return _JaxFunction._run(ctx, batch, rig, 1, images, seg_vector)
 
     @staticmethod
     def backward(ctx: Any, g_values: Tensor, g_status: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]

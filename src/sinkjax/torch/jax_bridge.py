@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
@@ -61,57 +62,76 @@ def seg_from_vector(v: Float[Array, " 6"]) -> SegmentationParams:
 BatchFn = Callable[..., tuple[Float[Array, "B 6"], Int[Array, " B"]]]
 
 
-def _from_mask_batch(
-    travel: str, wheel_radius_mm: float, uncertainty: UncertaintyModel | None
-) -> BatchFn:
-    def one(image_chw: Array, mask_1hw: Array) -> tuple[Array, Array]:
+class BridgeRig(eqx.Module):
+    """A rig's numbers as arrays, the first argument of every :class:`JittedBatch` function:
+    traced, so one compiled function serves every rig of an image size (:func:`bridge_rig`)."""
+
+    rect_px: Int[Array, " 4"]  # the confidence rectangle x, y, w, h (unused with masks)
+    travel_sign: Float[Array, ""]  # +1.0 travel right, -1.0 left
+    wheel_radius_mm: Float[Array, ""]
+
+
+def bridge_rig(
+    rect: tuple[int, int, int, int] | None, travel: str, wheel_radius_mm: float
+) -> BridgeRig:
+    """``rect`` (None with masks), ``travel`` and ``wheel_radius_mm`` as arrays of fixed dtypes
+    (every rig the same abstract signature). Raises ValueError for a bad ``travel``."""
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
+    return BridgeRig(
+        rect_px=jnp.asarray((0, 0, 1, 1) if rect is None else tuple(rect), jnp.int32),
+        travel_sign=jnp.asarray(travel_sign(travel), dtype),
+        wheel_radius_mm=jnp.asarray(float(wheel_radius_mm), dtype),
+    )
+
+
+def _from_mask_batch(uncertainty: UncertaintyModel | None) -> BatchFn:
+    def one(rig: BridgeRig, image_chw: Array, mask_1hw: Array) -> tuple[Array, Array]:
         est = measure_from_mask(
             jnp.moveaxis(image_chw, 0, -1),
             mask_1hw[0],
-            travel=travel,
-            wheel_radius_mm=wheel_radius_mm,
+            travel=rig.travel_sign,
+            wheel_radius_mm=rig.wheel_radius_mm,
             uncertainty=uncertainty,
         )
         return estimate_values(est), est.status
 
-    return jax.vmap(one)
+    return jax.vmap(one, in_axes=(None, 0, 0))
 
 
-def _from_image_batch(
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    uncertainty: UncertaintyModel | None,
-    open_radius_px: int,
-) -> BatchFn:
-    def one(image_chw: Array, seg_vector: Array) -> tuple[Array, Array]:
+def _from_image_batch(uncertainty: UncertaintyModel | None, open_radius_px: int) -> BatchFn:
+    def one(rig: BridgeRig, image_chw: Array, seg_vector: Array) -> tuple[Array, Array]:
         # measure(image, seg) is measure_from_mask(image, wheel_mask(image, seg)) (tested); this
         # path has the NaN-free gradients of the weight guard.
         image = jnp.moveaxis(image_chw, 0, -1)
-        mask = wheel_mask(image, seg_from_vector(seg_vector), rect)
+        mask = wheel_mask(image, seg_from_vector(seg_vector), rig.rect_px)
         if open_radius_px > 0:
             mask = soft_open(mask, open_radius_px)
         est = measure_from_mask(
-            image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, uncertainty=uncertainty
+            image,
+            mask,
+            travel=rig.travel_sign,
+            wheel_radius_mm=rig.wheel_radius_mm,
+            uncertainty=uncertainty,
         )
         return estimate_values(est), est.status
 
-    return jax.vmap(one, in_axes=(0, None))
+    return jax.vmap(one, in_axes=(None, 0, None))
 
 
 class JittedBatch:
-    """A batched estimator as three jitted functions, compiled once per input shape and dtype.
+    """A batched estimator as three jitted functions, compiled once per input shape and dtype,
+    whatever the rig (its :class:`BridgeRig` is a traced argument).
 
-    ``forward(*xs)`` -> (values, status); ``forward_vjp(*xs)`` -> (values, status, vjp) where
-    ``vjp`` is a pytree (``jax.tree_util.Partial``) holding the residuals, and
-    ``backward(vjp, g_values)`` -> cotangents of ``xs``. Running forward and backward through
-    jitted functions, and keeping the residuals between them, costs one solve per step instead of
-    the two that re-running the forward pass inside backward would.
+    ``forward(rig, *xs)`` -> (values, status); ``forward_vjp(rig, *xs)`` -> (values, status,
+    vjp) where ``vjp`` is a pytree (``jax.tree_util.Partial``) holding the residuals, and
+    ``backward(vjp, g_values)`` -> cotangents of ``xs`` (none for the rig). Running forward and
+    backward through jitted functions, and keeping the residuals between them, costs one solve
+    per step instead of the two that re-running the forward pass inside backward would.
     """
 
     def __init__(self, fn: BatchFn) -> None:
-        def with_vjp(*xs: Array) -> tuple[Array, Array, Callable]:
-            values, vjp, status = jax.vjp(fn, *xs, has_aux=True)
+        def with_vjp(rig: BridgeRig, *xs: Array) -> tuple[Array, Array, Callable]:
+            values, vjp, status = jax.vjp(lambda *x: fn(rig, *x), *xs, has_aux=True)
             return values, status, vjp
 
         self.forward = jit(fn)
@@ -120,29 +140,14 @@ class JittedBatch:
 
 
 @functools.cache
-def from_mask_batch(
-    travel: str, wheel_radius_mm: float, uncertainty: UncertaintyModel | None = None
-) -> JittedBatch:
-    """Jitted ``(images (B,3,H,W), masks (B,1,H,W)) -> (values (B,6), status (B,))``."""
-    travel_sign(travel)  # eager ValueError for a bad travel
-    return JittedBatch(_from_mask_batch(travel, float(wheel_radius_mm), uncertainty))
+def from_mask_batch(uncertainty: UncertaintyModel | None = None) -> JittedBatch:
+    """Jitted ``(rig, images (B,3,H,W), masks (B,1,H,W)) -> (values (B,6), status (B,))``."""
+    return JittedBatch(_from_mask_batch(uncertainty))
 
 
 @functools.cache
 def from_image_batch(
-    rect: tuple[int, int, int, int],
-    travel: str,
-    wheel_radius_mm: float,
-    uncertainty: UncertaintyModel | None = None,
-    open_radius_px: int = 0,
+    uncertainty: UncertaintyModel | None = None, open_radius_px: int = 0
 ) -> JittedBatch:
-    """Jitted ``(images (B,3,H,W), seg_vector (6,)) -> (values (B,6), status (B,))``."""
-    travel_sign(travel)
-    fn = _from_image_batch(
-        tuple(rect),  # type: ignore[arg-type]
-        travel,
-        float(wheel_radius_mm),
-        uncertainty,
-        int(open_radius_px),
-    )
-    return JittedBatch(fn)
+    """Jitted ``(rig, images (B,3,H,W), seg_vector (6,)) -> (values (B,6), status (B,))``."""
+    return JittedBatch(_from_image_batch(uncertainty, int(open_radius_px)))
