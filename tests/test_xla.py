@@ -40,7 +40,9 @@ def test_options_give_the_numbers_of_xla_defaults(draw_wheel) -> None:
     image = jnp.asarray(draw_wheel(width=160, height=120, cx=80.3, cy=50.6, r=42.7), jnp.float64)
     image = image / 255.0
     mask = jax.nn.sigmoid((image[..., 0] - image[..., 1] - 0.3) * 20.0)
-    assert xla.compiler_options() == xla.FAST_COMPILE_OPTIONS  # this project's jax knows them
+    if os.environ.get("SINKJAX_TEST_FAST_COMPILE") == "0":
+        pytest.skip("this XLA does not know the option (conftest's probe): nothing to compare")
+    assert xla.compiler_options() == xla.FAST_COMPILE_OPTIONS
     fast = xla.jit(_stages)(image, mask)
     # The tests' XLA_FLAGS carry the option too: the reference asks for XLA's default.
     default = {k: not v for k, v in xla.FAST_COMPILE_OPTIONS.items()}
