@@ -67,7 +67,8 @@ def test_the_switch_turns_the_options_off(
     assert xla.compiler_options() == {}
     monkeypatch.setenv(xla.ENV_SWITCH, "1")
     xla.compiler_options.cache_clear()
-    assert xla.compiler_options() == xla.FAST_COMPILE_OPTIONS
+    known = os.environ.get("SINKJAX_TEST_FAST_COMPILE") != "0"  # conftest's probe
+    assert xla.compiler_options() == (xla.FAST_COMPILE_OPTIONS if known else {})
 
 
 def test_jit_is_a_jitted_function_in_each_form() -> None:
