@@ -15,7 +15,7 @@ import pytest
 
 from sinkjax import synth
 from sinkjax.app.run import estimate_to_csv
-from sinkjax.geometry import equivalent_line
+from sinkjax.geometry import equivalent_line, from_wheel_frame
 from sinkjax.result import FEATURES_HUE_SAT
 from sinkjax.rig import Rig, SegmentationParams, save_rig
 from sinkjax.soft.batch import estimate_batch
@@ -54,6 +54,29 @@ def test_accuracy_on_rendered_truth(preset: str, rendered) -> None:
         assert abs(row.theta2_deg - t.theta2_deg) < max(1.5, 3 * row.theta2_std_deg)
         assert abs(row.radius_px - t.radius_px) < 0.5
         assert row.sinkage_std_mm > 0 and row.theta1_std_deg > 0
+
+
+@pytest.mark.parametrize("travel", ["right", "left"])
+def test_overlay_ends_are_the_rendered_contact_points(travel: str) -> None:
+    """A and B of a row's overlay (image px, drawn by the review page and the plots) are the
+    renderer's contact points, for either direction of travel."""
+    rng = np.random.default_rng(5)
+    scenes = synth.recording_scenes(rng, 3, preset="clean", width=W, height=H, travel=travel)
+    out = [synth.render(scene, seed=50 + i) for i, scene in enumerate(scenes)]
+    rig = synth.rig_for(scenes[0])
+    assert rig.travel == travel
+    rows = estimate_batch([o[0] for o in out], rig, ["0", "1", "2"])
+    measured = 0
+    for row, (_, t) in zip(rows, out, strict=True):
+        if row.status != "ok" or t.sinkage_px < 3:
+            continue
+        measured += 1
+        assert row.overlay is not None
+        for got, (u, v) in ((row.overlay.a_px, t.a_px), (row.overlay.b_px, t.b_end_px)):
+            want = from_wheel_frame(u, v, t.center_x_px, t.center_y_px, travel)
+            assert got is not None
+            assert abs(got[0] - float(want[0])) < 3.0 and abs(got[1] - float(want[1])) < 3.0
+    assert measured >= 2
 
 
 @pytest.mark.slow

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from ..geometry import from_wheel_frame, travel_sign
+from ..geometry import travel_sign
 from ..result import FEATURE_CHOICES, FrameResult, Overlay, failed, no_contact
 from ..rig import Rig
 from ..status import Status
@@ -64,8 +64,10 @@ def _frame_result(out: SoftEstimate, i: int, name: str, rig: Rig, searched: str)
         )
     sign = travel_sign(rig.travel)
     a, b = out.ends_uv_px[i].astype(float)
-    ax, ay = (float(t) for t in from_wheel_frame(a[0], a[1], cx, cy, rig.travel))
-    bx, by = (float(t) for t in from_wheel_frame(b[0], b[1], cx, cy, rig.travel))
+    # geometry.from_wheel_frame in plain floats: a JAX call per frame here would be an eager
+    # dispatch and a device round trip per number on an accelerator.
+    ax, ay = cx + sign * float(a[0]), cy + float(a[1])
+    bx, by = cx + sign * float(b[0]), cy + float(b[1])
     keep = out.boundary_weight[i] > 0.25
     boundary = np.stack([out.boundary_x_px[i][keep], out.boundary_y_px[i][keep]], -1)
     k, bb = float(p[3]), float(p[4])
