@@ -214,6 +214,19 @@ def test_reports_are_made_from_saved_numbers(tmp_path: Path) -> None:
     text = bench.report(data)
     assert "| soft | 640x480 | 8 | 8 | 5.0 | 8.00 | 125 | 800 |" in text
     assert "soft is 4.0x classic" in text
+    # A GPU run's report: the compiled method's rates, statuses and z0 errors per row.
+    gpu_rows = [
+        data["rows"][0] | {"z0_mm": [1.0, None], "true_z0_mm": [1.25, 2.0]},
+        data["rows"][1]
+        | {"statuses": {"ok": 6, "fit_failed": 2}, "device_fps": 500.0, "transfer_fps": 400.0}
+        | {"z0_mm": [3.0], "true_z0_mm": [2.5]},
+    ]
+    gpu = bench.report(data | {"backend": "gpu", "rows": gpu_rows})
+    assert "## GPU numbers" in gpu and "## CPU numbers" not in gpu
+    assert "| classic | 640x480 | 1 | - | 2.0 | - | - | - | 0 | -0.250, failed |" in gpu
+    soft_row = "| soft | 640x480 | 8 | 5.0 | 8.0 | 400 | 500 | 2.00 | 2 of 8 fit_failed | +0.500 |"
+    assert soft_row in gpu
+    assert "soft is 250.0x classic" in gpu
     benchmark = _module("benchmark")
     cols = [
         {
