@@ -141,6 +141,29 @@ def test_envelope_finds_a_shallow_chord_beside_lug_corners(dip_at_deg: float) ->
     assert int(np.sum(inside[-12:])) == 6
 
 
+@pytest.mark.parametrize("weight", [1.0, 0.2])
+def test_a_faint_shallow_chord_counts_by_its_points(weight: float) -> None:
+    # A chord 0.6 px deep moves the soft mask only partly: its edge points weigh about 0.2 each
+    # (measured on rendered 800x600 frames), 2-3 in all over the chord's ~15 points, under
+    # min_boundary_points (4). The envelope counts the points that lie on it instead.
+    u, v = _lower_edge_uv(0.0, 0.6)
+    v = v + np.random.default_rng(4).normal(0.0, 0.05, v.shape)
+    u, v = _with_lug_corners(u, v)
+    lower = jnp.full(u.shape, weight)
+    args = (jnp.asarray(u), jnp.asarray(v), lower, jnp.asarray(R))
+    z, _, on = envelope_line(*args)
+    assert float(z) == pytest.approx(0.6, abs=0.1)
+    assert float(jnp.sum(jnp.where(on, lower, 0.0))) < 4.0 or weight == 1.0
+    use, _ = shallow_boundary(*args, jnp.asarray(4.0), jnp.asarray(0.3))
+    assert bool(use)
+    # A bare rim with the same faint weights stays no contact.
+    phi = np.linspace(-np.pi / 2, np.pi / 2, int(np.pi * R))
+    noise = np.random.default_rng(5).normal(0.0, 0.1, phi.shape)
+    ub, vb = _with_lug_corners((R + noise) * np.sin(phi), (R + noise) * np.cos(phi))
+    bare = (jnp.asarray(ub), jnp.asarray(vb), jnp.full(ub.shape, weight), jnp.asarray(R))
+    assert not bool(shallow_boundary(*bare, jnp.asarray(4.0), jnp.asarray(0.3))[0])
+
+
 def test_envelope_sees_no_contact_on_a_bare_rim_with_lug_corners() -> None:
     phi = np.linspace(-np.pi / 2, np.pi / 2, int(np.pi * R))
     noise = np.random.default_rng(2).normal(0.0, 0.1, phi.shape)

@@ -36,7 +36,8 @@ weighs the model against its own inputs, with no threshold taken from the render
   confidence rectangle is above it) and reach the rim at both ends: its extreme points may stop
   short of the rim by the end clearance plus a few pixels, not by a tenth of the radius, or A and
   B are extrapolations the data never saw. Its span in x must also be the chord that z0 implies
-  on the equivalent line (the boundary is the line's stretch inside the rim), to within half.
+  on the equivalent line (the boundary is the line's stretch inside the rim), to within half
+  (a shallow chord is held to its own depth when ``soft.shallow`` finds it instead).
 - **the soil goes on beyond the rim**: the soil surface does not end at the wheel. Just outside
   the rim, past the lugs, below the equivalent line's extension, the image must look more like
   the soil just inside the rim below the line than like what lies above the extension, either
@@ -338,6 +339,10 @@ def plausibility(
     span = u[i_a] - u[i_b]
     chord_ratio = span / chord
     chord_wrong = (chord_ratio < CHORD_RATIO_RANGE[0]) | (span / chord_full > CHORD_RATIO_RANGE[1])
+    # A shallow chord (soft.shallow) passed the same test against its own depth when it was
+    # found (its points fill the chord); a sub-pixel z0 moved by its sigma changes the chord it
+    # implies by half, so the test is not repeated on the fitted z0.
+    chord_wrong = chord_wrong & ~(ev.shallow_chord > 0)
 
     ring = ring_disagreement(mask, p, ev.sign, contact)
     outer = outer_wheel(mask, p, ev.sign, contact)

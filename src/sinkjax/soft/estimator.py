@@ -165,7 +165,9 @@ def finish(
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
-    contact = jnp.sum(ev.w_line) >= s.min_boundary_points
+    # A shallow chord's edge is faint (the soil covers a sliver of a pixel or two), so its points
+    # weigh little: it is a contact by its points' number and fill (soft.shallow), not weight.
+    contact = (jnp.sum(ev.w_line) >= s.min_boundary_points) | (ev.shallow_chord > 0)
     check = plausibility(image, mask, p, ev, contact)
     std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
     std = jnp.sqrt(std**2 + line_shift_std(p, check, wheel_radius_mm) ** 2)

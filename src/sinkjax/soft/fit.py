@@ -242,7 +242,8 @@ def build_evidence(
     # A shallow contact against the recording's rim: the envelope of rim and soil line says
     # which points are the soil (``soft.shallow``); offsets from the rim alone cannot.
     use_env, on_env = shallow_boundary(u, v, lower, circle.r_px, s.min_boundary_points, inner_px)
-    inside = jnp.where((jnp.asarray(rim_weight, dt) > 0) & use_env, on_env, inside)
+    chord = (jnp.asarray(rim_weight, dt) > 0) & use_env
+    inside = jnp.where(chord, on_env, inside)
     # The margin the boundary actually starts at (the dip's only for a shallow contact).
     deep_weight = jnp.sum(jnp.where((dr < -s.rim_band_in_px) & (lower > 0.1), lower, 0.0))
     inner_px = jnp.where(deep_weight < s.min_boundary_points, inner_px, s.rim_band_in_px)
@@ -306,6 +307,7 @@ def build_evidence(
         end_anchor_px=jnp.stack([origin[:, 0], circle.cy_px + k0 * u_origin + b0], axis=1),
         rim_weight=jnp.asarray(rim_weight, dt),
         inner_px=inner_px,
+        shallow_chord=chord.astype(dt),
     )
 
 

@@ -64,6 +64,9 @@ class Evidence(eqx.Module):
     # corner).
     end_origin_px: Float[Array, "2 2"] = eqx.field(default_factory=lambda: jnp.zeros((2, 2)))
     end_anchor_px: Float[Array, "2 2"] = eqx.field(default_factory=lambda: jnp.zeros((2, 2)))
+    # 1 where the soil line is a shallow chord found against the recording's rim (soft.shallow):
+    # a contact, however little weight its faint sub-pixel edge gives its points.
+    shallow_chord: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 def _welsch(res: Array, scale: Array) -> Array:

@@ -66,13 +66,15 @@ def shallow_boundary(
 ) -> tuple[Bool[Array, ""], Bool[Array, " K"]]:
     """(whether the envelope's line part is a shallow soil edge to use, its points): a line
     deeper than ``min_depth_px`` (what the rim edge's own error explains:
-    ``fit.inner_margin_px``) and less deep than ``USE_BELOW_PX``, whose chord holds boundary
-    weight ``min_points`` or more and ``MIN_CHORD_FILL`` outline points per px of its length."""
+    ``fit.inner_margin_px``) and less deep than ``USE_BELOW_PX``, whose chord holds
+    ``min_points`` or more outline points, and ``MIN_CHORD_FILL`` per px of its length. Points,
+    not boundary weight: a sliver of soil a pixel deep moves the soft mask only partly, so the
+    points of its edge weigh 0.2-0.4 each (four such points weigh one)."""
     # Only comparisons (booleans) leave here: no gradient to stop.
     z, _, on = envelope_line(u, v, lower, r_px)
-    n_on = jnp.sum(jnp.where(on, lower, 0.0))
+    n_on = jnp.sum(on.astype(u.dtype))
     chord = 2.0 * jnp.sqrt(2.0 * r_px * jnp.maximum(z - CHORD_MARGIN_PX, 0.0))
-    filled = jnp.sum(on.astype(u.dtype)) >= MIN_CHORD_FILL * chord
+    filled = n_on >= MIN_CHORD_FILL * chord
     use = (z > min_depth_px) & (z < USE_BELOW_PX) & (n_on >= min_points) & filled
     return use, on
 
