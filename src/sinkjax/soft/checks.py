@@ -340,8 +340,9 @@ def plausibility(
     chord_ratio = span / chord
     chord_wrong = (chord_ratio < CHORD_RATIO_RANGE[0]) | (span / chord_full > CHORD_RATIO_RANGE[1])
     # A shallow chord (soft.shallow) passed the same test against its own depth when it was
-    # found (its points fill the chord); a sub-pixel z0 moved by its sigma changes the chord it
-    # implies by half, so the test is not repeated on the fitted z0.
+    # found (its points fill the chord). The chord the fitted z0 implies inside the margin,
+    # 2 sqrt(2 r (z0 - margin)), halves or doubles when a sub-pixel z0 moves by its sigma, so the
+    # test is not repeated on it.
     chord_wrong = chord_wrong & ~(ev.shallow_chord > 0)
 
     ring = ring_disagreement(mask, p, ev.sign, contact)

@@ -69,7 +69,7 @@ def shallow_boundary(
     ``fit.inner_margin_px``) and less deep than ``USE_BELOW_PX``, whose chord holds
     ``min_points`` or more outline points, and ``MIN_CHORD_FILL`` per px of its length. Points,
     not boundary weight: a sliver of soil a pixel deep moves the soft mask only partly, so the
-    points of its edge weigh 0.2-0.4 each (four such points weigh one)."""
+    points of its edge weigh 0.2-0.4 each (measured on rendered 640x480 and 800x600 frames)."""
     # Only comparisons (booleans) leave here: no gradient to stop.
     z, _, on = envelope_line(u, v, lower, r_px)
     n_on = jnp.sum(on.astype(u.dtype))
