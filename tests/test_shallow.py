@@ -98,6 +98,13 @@ def test_hidden_sigma_matches_uniform_sinkage() -> None:
     assert std[0] == pytest.approx(120.0**-1 * np.sqrt(np.mean(z**2)), rel=1e-2)
     theta = np.arccos(1 - z / 120.0)
     assert std[1] == pytest.approx(np.sqrt(np.mean(theta**2)), rel=2e-2)
+    # A chord the envelope found 0.5 px deep but did not take: up to 0.5 px + the margin hides.
+    seen = np.asarray(hidden_contact_std(r, inner, 1.0, s, jnp.asarray(0.5)))
+    z = np.random.default_rng(1).uniform(0, 0.9, 200_000)
+    assert seen[0] == pytest.approx(120.0**-1 * np.sqrt(np.mean(z**2)), rel=1e-2)
+    # One no deeper than the margin (rim noise can draw such a line) changes nothing.
+    low = np.asarray(hidden_contact_std(r, inner, 1.0, s, jnp.asarray(0.39)))
+    np.testing.assert_allclose(low, std, rtol=1e-12)
 
 
 def _lower_edge_uv(dip_at_deg: float, depth_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -128,9 +135,10 @@ def test_envelope_finds_a_shallow_chord_beside_lug_corners(dip_at_deg: float) ->
     on = np.asarray(on)
     assert not np.any(on[-12:])  # no lug corner
     assert np.all(on_soil[on[:-12]]) and np.sum(on[:-12]) >= 0.6 * np.sum(chord)
-    use, _ = shallow_boundary(
+    use, _, depth = shallow_boundary(
         jnp.asarray(u), jnp.asarray(v), lower, jnp.asarray(R), jnp.asarray(4.0), jnp.asarray(0.3)
     )
+    assert float(depth) == pytest.approx(float(z))  # a chord seen (and taken)
     assert bool(use)
     # The offset test takes lug corners (3 px inside the rim) for the soil: those of one side,
     # the deepest stretch it sees (the other side's lie beyond the rim edge from them).
@@ -154,7 +162,7 @@ def test_a_faint_shallow_chord_counts_by_its_points(weight: float) -> None:
     z, _, on = envelope_line(*args)
     assert float(z) == pytest.approx(0.6, abs=0.1)
     assert float(jnp.sum(jnp.where(on, lower, 0.0))) < 4.0 or weight == 1.0
-    use, _ = shallow_boundary(*args, jnp.asarray(4.0), jnp.asarray(0.3))
+    use, _, _ = shallow_boundary(*args, jnp.asarray(4.0), jnp.asarray(0.3))
     assert bool(use)
     # A bare rim with the same faint weights stays no contact.
     phi = np.linspace(-np.pi / 2, np.pi / 2, int(np.pi * R))
@@ -169,8 +177,8 @@ def test_envelope_sees_no_contact_on_a_bare_rim_with_lug_corners() -> None:
     noise = np.random.default_rng(2).normal(0.0, 0.1, phi.shape)
     u, v = _with_lug_corners((R + noise) * np.sin(phi), (R + noise) * np.cos(phi))
     args = (jnp.asarray(u), jnp.asarray(v), jnp.ones(u.shape), jnp.asarray(R))
-    use, _ = shallow_boundary(*args, jnp.asarray(4.0), jnp.asarray(0.3))
-    assert not bool(use)
+    use, _, depth = shallow_boundary(*args, jnp.asarray(4.0), jnp.asarray(0.3))
+    assert not bool(use) and float(depth) == 0.0  # no chord seen: nothing more can hide
 
 
 def _lower_edge(dip_at_deg: float, depth_px: float) -> tuple[jnp.ndarray, jnp.ndarray]:

@@ -184,7 +184,8 @@ def finish(
         ),
     )
     zero_if_no_contact = jnp.where(contact, 1.0, 0.0)
-    std = jnp.where(contact, std, hidden_contact_std(p[2], ev.inner_px, wheel_radius_mm, s))
+    hidden = hidden_contact_std(p[2], ev.inner_px, wheel_radius_mm, s, ev.envelope_depth_px)
+    std = jnp.where(contact, std, hidden)
     return SoftEstimate(
         sinkage_mm=est[0] * zero_if_no_contact,
         sinkage_std_mm=std[0],
@@ -212,18 +213,27 @@ def hidden_contact_std(
     inner_px: Float[Array, ""],
     wheel_radius_mm: float | Float[Array, ""],
     settings: SoftSettings,
+    envelope_px: float | Float[Array, ""] = 0.0,
 ) -> Float[Array, " 3"]:
     """One sigma of (sinkage mm, theta1 rad, theta2 rad) for a frame read as no contact.
 
     The soil may still touch the rim, too little to be seen: an edge counts as soil only
     ``inner_px`` inside the rim (``fit.inner_margin_px``), and a contact needs
     ``min_boundary_points`` columns of it, so a sinkage up to z_max = inner_px + (n / 2)^2 / (2 r)
-    can hide. Reported as 0, the sinkage's error is then at most z_max; with no reason to prefer
-    any depth below it, its root mean square is z_max / sqrt(3) (uniform on [0, z_max]), and
-    that of each angle (theta ~ sqrt(2 z0 / r) on flat ground) acos(1 - z_max / r) / sqrt(2).
+    can hide. Where the envelope of rim and soil line (``soft.shallow``) saw a chord
+    ``envelope_px`` deep, deeper than the margin and with ``min_boundary_points`` on it, but did
+    not take it (its points do not fill its length), a chord that deep may hide, its depth known
+    to about the margin: z_max is then at least envelope_px + inner_px (on 4 seeds of
+    ``experiments/shallow_contact.py``, 6 of the 8 contacts of 0.5-0.7 px read as none; the
+    frames without contact see no such chord). Reported as
+    0, the sinkage's error is then at most z_max; with no reason to prefer any depth below it,
+    its root mean square is z_max / sqrt(3) (uniform on [0, z_max]), and that of each angle
+    (theta ~ sqrt(2 z0 / r) on flat ground) acos(1 - z_max / r) / sqrt(2).
     """
     r = jnp.maximum(r_px, 1.0)
     z_max = inner_px + (0.5 * settings.min_boundary_points) ** 2 / (2.0 * r)
+    seen = jnp.asarray(envelope_px, z_max.dtype)
+    z_max = jnp.maximum(z_max, jnp.where(seen > inner_px, seen + inner_px, 0.0))
     # Inside (-1, 1): arccos has an infinite derivative at both ends (no wheel: r ~ 0).
     angle = jnp.arccos(jnp.clip(1.0 - z_max / r, -1.0 + 1e-6, 1.0 - 1e-6))
     z_mm = z_max * wheel_radius_mm / r

@@ -241,8 +241,11 @@ def build_evidence(
     inside = boundary_side(u, dr, lower, inner_px, s)
     # A shallow contact against the recording's rim: the envelope of rim and soil line says
     # which points are the soil (``soft.shallow``); offsets from the rim alone cannot.
-    use_env, on_env = shallow_boundary(u, v, lower, circle.r_px, s.min_boundary_points, inner_px)
-    chord = (jnp.asarray(rim_weight, dt) > 0) & use_env
+    use_env, on_env, z_env = shallow_boundary(
+        u, v, lower, circle.r_px, s.min_boundary_points, inner_px
+    )
+    with_rim = jnp.asarray(rim_weight, dt) > 0
+    chord = with_rim & use_env
     inside = jnp.where(chord, on_env, inside)
     # The margin the boundary actually starts at (the dip's only for a shallow contact).
     deep_weight = jnp.sum(jnp.where((dr < -s.rim_band_in_px) & (lower > 0.1), lower, 0.0))
@@ -308,6 +311,7 @@ def build_evidence(
         rim_weight=jnp.asarray(rim_weight, dt),
         inner_px=inner_px,
         shallow_chord=chord.astype(dt),
+        envelope_depth_px=jnp.where(with_rim, z_env, 0.0).astype(dt),
     )
 
 

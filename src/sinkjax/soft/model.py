@@ -67,6 +67,9 @@ class Evidence(eqx.Module):
     # 1 where the soil line is a shallow chord found against the recording's rim (soft.shallow):
     # a contact, however little weight its faint sub-pixel edge gives its points.
     shallow_chord: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
+    # The depth (px) of a soil chord the envelope saw (min_boundary_points on it), taken or not;
+    # 0 where it saw none or without the recording's rim: with no contact, that much may hide.
+    envelope_depth_px: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
 
 
 def _welsch(res: Array, scale: Array) -> Array:

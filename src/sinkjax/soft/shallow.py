@@ -63,8 +63,10 @@ def shallow_boundary(
     r_px: Float[Array, ""],
     min_points: Float[Array, ""],
     min_depth_px: Float[Array, ""],
-) -> tuple[Bool[Array, ""], Bool[Array, " K"]]:
-    """(whether the envelope's line part is a shallow soil edge to use, its points): a line
+) -> tuple[Bool[Array, ""], Bool[Array, " K"], Float[Array, ""]]:
+    """(whether the envelope's line part is a shallow soil edge to use, its points, and the
+    line's depth z0 px where at least ``min_points`` points lie on it, used or not, else 0: a
+    chord seen but not taken, which a frame read as no contact may hide): a line
     deeper than ``min_depth_px`` (what the rim edge's own error explains:
     ``fit.inner_margin_px``) and less deep than ``USE_BELOW_PX``, whose chord holds
     ``min_points`` or more outline points, and ``MIN_CHORD_FILL`` per px of its length. Points,
@@ -76,7 +78,7 @@ def shallow_boundary(
     chord = 2.0 * jnp.sqrt(2.0 * r_px * jnp.maximum(z - CHORD_MARGIN_PX, 0.0))
     filled = n_on >= MIN_CHORD_FILL * chord
     use = (z > min_depth_px) & (z < USE_BELOW_PX) & (n_on >= min_points) & filled
-    return use, on
+    return use, on, jnp.where(n_on >= min_points, z, 0.0)
 
 
 def envelope_line(
