@@ -223,12 +223,12 @@ def hidden_contact_std(
     can hide. Where the envelope of rim and soil line (``soft.shallow``) saw a chord
     ``envelope_px`` deep, deeper than the margin and with ``min_boundary_points`` on it, but did
     not take it (its points do not fill its length), a chord that deep may hide, its depth known
-    to about the margin: z_max is then at least envelope_px + inner_px (on 4 seeds of
-    ``experiments/shallow_contact.py``, 6 of the 8 contacts of 0.5-0.7 px read as none; the
-    frames without contact see no such chord). Reported as
-    0, the sinkage's error is then at most z_max; with no reason to prefer any depth below it,
-    its root mean square is z_max / sqrt(3) (uniform on [0, z_max]), and that of each angle
-    (theta ~ sqrt(2 z0 / r) on flat ground) acos(1 - z_max / r) / sqrt(2).
+    to about the margin: z_max is then at least envelope_px + inner_px. (On 4 seeds of
+    ``experiments/shallow_contact.py`` this bound covers 6 of the 8 contacts of 0.5-0.7 px read
+    as none; no frame without contact sees such a chord.) Reported as 0, the sinkage's error is
+    then at most z_max; with no reason to prefer any depth below it, its root mean square is
+    z_max / sqrt(3) (uniform on [0, z_max]), and that of each angle (theta ~ sqrt(2 z0 / r) on
+    flat ground) acos(1 - z_max / r) / sqrt(2).
     """
     r = jnp.maximum(r_px, 1.0)
     z_max = inner_px + (0.5 * settings.min_boundary_points) ** 2 / (2.0 * r)
