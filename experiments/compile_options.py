@@ -1,7 +1,8 @@
 """What sinkjax's XLA compile options (``sinkjax.xla``) buy: compile time, run time, numbers.
 
 For each image size, two fresh Python processes per round (XLA's defaults with
-``SINKJAX_FAST_COMPILE=0``, and the library's options), taking turns: each renders one synthetic
+``SINKJAX_FAST_COMPILE=0``, the library's default, and its options with ``=1``), taking turns:
+each renders one synthetic
 frame of the 'full' preset (seed fixed, not timed), then times lowering and compiling the soft
 method's forward pass (``soft.estimator.measure``, rig numbers traced) and the gradient of its
 sinkage with respect to the thresholds, and the forward pass's median run time; and keeps the
@@ -136,7 +137,10 @@ def report(res: dict) -> str:
         "(in float32, the command line's precision, rounding differs and the solve carries it on: "
         "see `sinkjax/xla.py`); it shortens every cold compile (a new image size, a new process "
         "without the persistent cache, calibration, training, the test suite). A warm start, "
-        "which loads the compiled method from the persistent cache, is not affected.",
+        "which loads the compiled method from the persistent cache, is not affected. The run "
+        "time here is one thread on one frame; through the pipeline on both cores the frames "
+        "ran 10-20 % slower with the option (`sinkjax/xla.py`), so the library compiles with "
+        "XLA's defaults unless `SINKJAX_FAST_COMPILE=1`; the tests turn it on.",
     ]
     return "\n".join(lines) + "\n"
 

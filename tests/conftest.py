@@ -22,8 +22,10 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
-# The library compiles with sinkjax.xla.FAST_COMPILE_OPTIONS where XLA knows them; the tests' own
-# jitted functions get them through XLA_FLAGS. An unknown flag there aborts the process, so one
+# Every compile of the tests (the library's, the tests' own, and those of the subprocesses they
+# start) uses sinkjax.xla.FAST_COMPILE_OPTIONS through XLA_FLAGS where XLA knows them: nearly
+# every test compiles a new program, so compile time is what counts here (the library keeps
+# XLA's defaults, which run faster). An unknown flag there aborts the process, so one
 # subprocess probes it, once (the xdist workers inherit the answer); test_xla checks the flag
 # is the library's option.
 FAST_COMPILE_FLAG = "--xla_cpu_use_fusion_emitters=false"

@@ -1,5 +1,6 @@
-"""sinkjax.xla: the library's jitted functions compile with XLA options that cut compile time,
-give XLA's default numbers, and fall back to no options where XLA does not know them."""
+"""sinkjax.xla: the library's jitted functions compile with XLA's defaults, or, where
+SINKJAX_FAST_COMPILE=1 asks, with options that cut compile time, give XLA's default numbers,
+and fall back to no options where XLA does not know them."""
 
 from __future__ import annotations
 
@@ -36,7 +37,10 @@ def _stages(image: jax.Array, mask: jax.Array) -> tuple[jax.Array, ...]:
     return outline.x_px, outline.y_px, outline.weight, c.cx_px, c.cy_px, c.r_px, cut, moved
 
 
-def test_options_give_the_numbers_of_xla_defaults(draw_wheel) -> None:
+def test_options_give_the_numbers_of_xla_defaults(
+    draw_wheel, fresh_options: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(xla.ENV_SWITCH, "1")
     image = jnp.asarray(draw_wheel(width=160, height=120, cx=80.3, cy=50.6, r=42.7), jnp.float64)
     image = image / 255.0
     mask = jax.nn.sigmoid((image[..., 0] - image[..., 1] - 0.3) * 20.0)
@@ -55,15 +59,19 @@ def test_options_give_the_numbers_of_xla_defaults(draw_wheel) -> None:
 def test_an_option_xla_does_not_know_means_none(
     fresh_options: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setenv(xla.ENV_SWITCH, "1")
     monkeypatch.setattr(xla, "FAST_COMPILE_OPTIONS", {"xla_no_such_option_here": True})
     assert xla.compiler_options() == {}
     assert float(xla.jit(lambda x: 2.0 * x)(jnp.asarray(3.0))) == 6.0
 
 
-def test_the_switch_turns_the_options_off(
+def test_the_options_are_off_unless_the_switch_asks(
     fresh_options: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.delenv(xla.ENV_SWITCH, raising=False)
+    assert xla.compiler_options() == {}
     monkeypatch.setenv(xla.ENV_SWITCH, "0")
+    xla.compiler_options.cache_clear()
     assert xla.compiler_options() == {}
     monkeypatch.setenv(xla.ENV_SWITCH, "1")
     xla.compiler_options.cache_clear()

@@ -1,23 +1,28 @@
-"""How sinkjax compiles: ``jax.jit`` / ``eqx.filter_jit`` with XLA options that make the soft
-method compile faster on a CPU, chosen once per process at the first compile.
+"""How sinkjax compiles: ``jax.jit`` / ``eqx.filter_jit``, with XLA options that make the soft
+method compile faster on a CPU where ``SINKJAX_FAST_COMPILE=1`` asks for them (chosen once per
+process, at the first compile). Off by default: they compile faster but run slower.
 
 The soft method is one large program (segmentation, outline, rim search, two Levenberg-Marquardt
 solves, covariance, checks: about 29 000 lines of HLO before optimisation), and on a CPU
 most of a cold start is XLA compiling it. XLA's newer CPU fusion emitters
 (``xla_cpu_use_fusion_emitters``, on by default) generate each fusion through MLIR, which costs
-more compile time than the classic elemental emitters and buys nothing measurable here.
-Measured by ``experiments/compile_options.py`` (one thread, as each ``make test`` worker has; 2
-CPU cores, jax 0.10.2): the forward pass compiles in 0.70-0.77x the time, its gradient in
-0.73-0.82x, it runs as fast (0.98-1.01x), and every output agrees to 6e-14 in float64. In
-float32 (the command line's precision) the rounding differs and the solve carries it on: over
-the 80 frames of ``experiments/benchmark.py --seed 11 --recordings 5`` no status changed and
-values moved by at most 3e-5 mm (z0), 0.005 deg (angles) and 2e-4 mm in a sigma, under 0.01
-sigma; its summary table is the same. The persistent cache keeps the two apart (the options
-are part of its key). The test suite took 18 min instead of 23.
+more compile time than the classic elemental emitters. Measured by
+``experiments/compile_options.py`` (one thread, as each ``make test`` worker has; 2 CPU cores,
+jax 0.10.2): with the classic emitters the forward pass compiles in 0.70-0.77x the time, its
+gradient in 0.73-0.82x, and every output agrees to 6e-14 in float64; in float32 (the command
+line's precision) no status of ``experiments/benchmark.py --seed 11 --recordings 5`` changed and
+values moved by at most 3e-5 mm (z0), 0.005 deg (angles). But through the pipeline, on both
+cores, the frames run slower: ``SINKJAX_FAST_COMPILE=0/1 python experiments/bench.py --one soft W
+H 1 N`` taking turns, 60 / 67 ms a 640x480 frame (48 frames, twice each) and 170-198 / 207-216 ms
+a 1280x720 one, for about 4 s less compiling (14.5 against 18.5 s). With JAX's persistent cache a
+run compiles once per image size and machine and then only runs, so the library keeps XLA's
+defaults; the test suite, which compiles a new program in nearly every test, turns the option on
+for every compile through ``XLA_FLAGS`` (``tests/conftest.py``: 18 min instead of 23). The
+persistent cache keeps the two apart (the options are part of its key).
 
 An XLA that does not know the option (an older or newer jaxlib) gets none: the first compile
 probes it with a one-operation function, and an unknown option is a Python error there, not a
-crash. ``SINKJAX_FAST_COMPILE=0`` turns the options off (XLA's defaults throughout).
+crash.
 """
 
 from __future__ import annotations
@@ -30,16 +35,17 @@ from typing import Any
 
 #: The XLA debug options sinkjax compiles with, where the installed XLA knows them.
 FAST_COMPILE_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
-#: Set to "0" to compile with XLA's defaults.
+#: Set to "1" to compile with :data:`FAST_COMPILE_OPTIONS` (default: XLA's own).
 ENV_SWITCH = "SINKJAX_FAST_COMPILE"
 
 
 @functools.cache
 def compiler_options() -> dict[str, Any]:
-    """The options every sinkjax ``jit`` passes to XLA: :data:`FAST_COMPILE_OPTIONS` where this
-    XLA accepts them (probed once per process), else none. Initialises JAX's backend, so it is
-    called at the first compile, never at import."""
-    if os.environ.get(ENV_SWITCH, "1").strip() == "0":
+    """The options every sinkjax ``jit`` passes to XLA: :data:`FAST_COMPILE_OPTIONS` where
+    ``SINKJAX_FAST_COMPILE=1`` asks for them and this XLA accepts them (probed once per
+    process), else none. Initialises JAX's backend, so it is called at the first compile, never
+    at import."""
+    if os.environ.get(ENV_SWITCH, "0").strip() != "1":
         return {}
     import jax
     import numpy as np
