@@ -4,7 +4,9 @@ foreign file costs a fresh export, never a failed run or a changed number."""
 from __future__ import annotations
 
 import logging
+import threading
 
+import jax
 import numpy as np
 import pytest
 
@@ -51,12 +53,24 @@ def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> Non
         )
         assert unusable == [str(p) for p in paths]
         assert again == fresh
-        # Rewritten by the last run: the next loads it silently.
+        # Rewritten by the last run: the next loads it silently. Finish and rechoose load on
+        # the warm-up thread (soft.warm) while prepare runs; their calls compile nothing.
         E.set_compiled_provider(ExecutableCache(tmp_path))
-        with caplog.at_level(logging.INFO, logger="sinkjax"):
-            caplog.clear()
-            loaded = _numbers(E.estimate_batch([image], rig, ["f"]))
+        compiles: list[str] = []
+
+        def listen(event: str, start: float, end: float, **kw: object) -> None:
+            if event.endswith("backend_compile_duration") and kw.get("fun_name") == "jit(call)":
+                compiles.append(threading.current_thread().name.split("_")[0])
+
+        jax.monitoring.register_event_time_span_listener(listen)
+        try:
+            with caplog.at_level(logging.INFO, logger="sinkjax"):
+                caplog.clear()
+                loaded = _numbers(E.estimate_batch([image], rig, ["f"]))
+        finally:
+            jax.monitoring.unregister_event_time_span_listener(listen)
         assert not [m for m in caplog.messages if "exported function" in m]
+        assert sorted(compiles) == ["MainThread", "sinkjax-warm", "sinkjax-warm"]
     finally:
         E.set_compiled_provider(None)
     assert fresh == reference

@@ -32,6 +32,7 @@ from .rows import frame_result as frame_result
 from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel
+from .warm import placed_like, warm, warmed
 
 log = logging.getLogger("sinkjax")
 
@@ -89,8 +90,7 @@ def _compiled(name: str, fn: Any, args: tuple[Any, ...]) -> Callable[..., Any]:
     return fn if _provider is None else _provider(name, fn, args)
 
 
-# Accelerator batches are padded to one of these sizes (then to a multiple of the largest), so
-# that a run compiles a handful of shapes, not one per batch length.
+# Accelerator batches are padded to one of these sizes (then to multiples of the largest).
 BATCH_SIZES = (1, 8, 32, 128)
 
 
@@ -106,8 +106,8 @@ def padded_size(n: int) -> int:
 
 def _use_vmap() -> bool:
     # On a CPU, vmap runs the Levenberg-Marquardt loops of all frames in lockstep until the
-    # slowest converges, and XLA optimises a looped body (lax.map) worse than a plain one: frame
-    # by frame through one compiled function is fastest. Accelerators want the whole batch.
+    # slowest converges, and XLA optimises a looped body (lax.map) worse than a plain one:
+    # frame by frame is fastest there. Accelerators want the whole batch.
     return jax.default_backend() != "cpu"
 
 
@@ -281,11 +281,21 @@ class _Run:
 
     def prepare(self, images: list[np.ndarray], rim: RecordingRim) -> list[Prepared]:
         frames = self._frames(images)
-        fn = self._fn("prepare", (frames[0], self.segmenter, self.arrays, rim))
+        args = (frames[0], self.segmenter, self.arrays, rim)
+        fn = self._fn("prepare", args)
+        if _provider is not None and self.default:
+            # The later halves load while this one runs (soft.warm): their shapes from the
+            # exported prepare's outputs, with no tracing of the method.
+            out = placed_like(jax.eval_shape(fn, *args), frames[0])
+            for name, shapes in (
+                ("finish", (frames[0], out, self.arrays)),
+                ("rechoose", (out, rim)),
+            ):
+                warm(self._fn(name, shapes), shapes)
         return [fn(f, self.segmenter, self.arrays, rim) for f in frames]
 
     def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
-        fn = self._fn("rechoose", (prepared[0], rim))
+        fn = warmed(self._fn("rechoose", (prepared[0], rim)))
         return [fn(p, rim) for p in prepared]
 
     def with_rim(
@@ -307,7 +317,7 @@ class _Run:
 
     def finish(self, images: list[np.ndarray], prepared: list[Prepared]) -> SoftEstimate:
         frames = self._frames(images)
-        fn = self._fn("finish", (frames[0], prepared[0], self.arrays))
+        fn = warmed(self._fn("finish", (frames[0], prepared[0], self.arrays)))
         each = [fn(f, p, self.arrays) for f, p in zip(frames, prepared, strict=True)]
         if self.vmap:
             return jax.tree_util.tree_map(np.asarray, each[0])
