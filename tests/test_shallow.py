@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sinkjax import synth as S
-from sinkjax.soft.estimator import hidden_contact_std, measure
-from sinkjax.soft.fit import boundary_side
+from sinkjax.soft.adaptive import default_segmenter
+from sinkjax.soft.checks import line_shift_std, plausibility
+from sinkjax.soft.estimator import hidden_contact_std, measure, prepare
+from sinkjax.soft.fit import boundary_side, build_evidence
+from sinkjax.soft.model import measurements
 from sinkjax.soft.rim import RecordingRim
 from sinkjax.soft.settings import SoftSettings
 from sinkjax.soft.shallow import envelope_line, shallow_boundary
@@ -72,6 +76,37 @@ def test_shallow_contact_is_measured(z0_px: float) -> None:
     px_per_mm = R / S.Scene().wheel_radius_mm
     assert abs(float(est.sinkage_mm) * px_per_mm - truth.sinkage_px) < 0.3
     assert float(est.sinkage_std_mm) > 0
+
+
+def test_a_shallow_chords_depth_is_known_to_its_margin() -> None:
+    # The envelope measures the chord's depth against the rim's edge in this frame, which a
+    # shadow or soil just below the rim pulls in by about the margin with no soil touching it
+    # (no-contact frames of experiments/shallow_contact.py read 0.4-0.6 px "chords" under
+    # margins of 0.35-0.45 px): the soil line's shift adds the margin in quadrature, and
+    # line_shift_std turns it into z0's change for the line moved that far (finite difference).
+    image, _ = _frame(CY + R - 0.7)
+    est = _run(image)
+    rig = S.rig_for(S.Scene(width=320, height=240, centre_x_px=CX, centre_y_px=CY, radius_px=R))
+    img = jnp.asarray(image, jnp.float64) / 255.0
+    rim = RecordingRim.fixed(CX, CY, R, 0.05)
+    mask = default_segmenter(rig.segmentation).with_rim(img, rig.confidence_rect, rim.disc())
+    prep = prepare(img, mask, rim)
+    choice = prep.choice
+    ev = build_evidence(prep.outline, choice.circle, 1.0, SoftSettings(), choice.prior_weight)
+    margin = float(ev.shallow_chord)
+    assert 0.2 < margin < 1.0  # a chord found, against the frame's own margin
+    p, yes = est.params, jnp.asarray(True)
+    shift = float(plausibility(img, mask, p, ev, yes).line_shift_px)
+    bare = eqx.tree_at(lambda e: e.shallow_chord, ev, jnp.zeros(()))
+    before = float(plausibility(img, mask, p, bare, yes).line_shift_px)
+    assert shift**2 == pytest.approx(before**2 + margin**2, rel=1e-9)
+    k, h = float(p[3]), 1e-4
+    down = jnp.zeros_like(p).at[4].set(np.sqrt(1.0 + k * k)).at[6].set(1.0).at[8].set(1.0)
+    dz = float(measurements(p + h * down, 140.0)[0] - measurements(p - h * down, 140.0)[0]) / (
+        2 * h
+    )
+    check = plausibility(img, mask, p, ev, yes)
+    assert float(line_shift_std(p, check, 140.0)[0]) == pytest.approx(abs(dz) * shift, rel=1e-5)
 
 
 def test_no_contact_reports_the_sinkage_it_could_hide() -> None:

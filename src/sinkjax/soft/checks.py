@@ -28,10 +28,9 @@ weighs the model against its own inputs, with no threshold taken from the render
 - **residuals vs the outline's own noise**: the rim points' residual variance against the
   variance of the boundary points around the two short end tangents (the same mask's edge noise,
   measured where the model is a straight line over a few pixels). Their ratio, an F statistic,
-  inflates sigma by its square root whenever it exceeds one (a Birge ratio: the fit explains its
-  evidence less well than the noise allows). It is reported with its 99.9 % point (log-normal
-  approximation, effective degrees of freedom reduced by the outline's correlation length) but
-  does not set the status: lugs and JPEG make rim and boundary noise differ on good frames too.
+  inflates sigma by its square root whenever it exceeds one (a Birge ratio). It is reported with
+  its 99.9 % point (log-normal approximation, degrees of freedom reduced by the outline's
+  correlation length) but sets no status: lugs and JPEG make rim and boundary noise differ.
 - **a plausible soil curve**: the boundary must lie below O (the soil cannot cover the hub: the
   confidence rectangle is above it) and reach the rim at both ends: its extreme points may stop
   short of the rim by the end clearance plus a few pixels, not by a tenth of the radius, or A and
@@ -52,7 +51,8 @@ weighs the model against its own inputs, with no threshold taken from the render
   keeps below the line (read as the probability that the line is deeper) and the width of the
   mask's fade across it give how far the line could be, in px; the measurements' change for a
   line moved that far (:func:`line_shift_std`) adds to sigma in quadrature. On a frame whose
-  mask has a sharp soil edge both are about zero and sigma is unchanged.
+  mask has a sharp soil edge both are about zero and sigma is unchanged. A shallow chord's depth
+  (``soft.shallow``) adds its margin: a shadow or soil just below the rim pulls the edge in as far.
 
 Frames failing any test get status ``implausible`` (their message names the test) instead of a
 confident number. Everything is pure JAX, jit- and vmap-able.
@@ -366,6 +366,8 @@ def plausibility(
     # The line may sit anywhere in a fade of width L = 6 fade: a uniform spread of L / sqrt(12)
     # = sqrt(3) fade about it, on top of the one-sided shift the mask's wheel below it implies.
     shift = jnp.sqrt(shift_rms**2 + 3.0 * fade**2)
+    # A shallow chord's depth is known to its margin (fit.build_evidence; module docstring).
+    shift = jnp.sqrt(shift**2 + ev.shallow_chord**2)
     return Plausibility(
         ring_disagreement=ring,
         outer_wheel=outer,

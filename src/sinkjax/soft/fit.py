@@ -246,6 +246,7 @@ def build_evidence(
     )
     with_rim = jnp.asarray(rim_weight, dt) > 0
     chord = with_rim & use_env
+    chord_margin = jnp.where(chord, jnp.maximum(inner_px, 1e-3), 0.0)
     inside = jnp.where(chord, on_env, inside)
     # The margin the boundary actually starts at (the dip's only for a shallow contact).
     deep_weight = jnp.sum(jnp.where((dr < -s.rim_band_in_px) & (lower > 0.1), lower, 0.0))
@@ -310,7 +311,7 @@ def build_evidence(
         end_anchor_px=jnp.stack([origin[:, 0], circle.cy_px + k0 * u_origin + b0], axis=1),
         rim_weight=jnp.asarray(rim_weight, dt),
         inner_px=inner_px,
-        shallow_chord=chord.astype(dt),
+        shallow_chord=chord_margin.astype(dt),
         envelope_depth_px=jnp.where(with_rim, z_env, 0.0).astype(dt),
     )
 

@@ -64,8 +64,9 @@ class Evidence(eqx.Module):
     # corner).
     end_origin_px: Float[Array, "2 2"] = eqx.field(default_factory=lambda: jnp.zeros((2, 2)))
     end_anchor_px: Float[Array, "2 2"] = eqx.field(default_factory=lambda: jnp.zeros((2, 2)))
-    # 1 where the soil line is a shallow chord found against the recording's rim (soft.shallow):
-    # a contact, however little weight its faint sub-pixel edge gives its points.
+    # > 0 where the soil line is a shallow chord found against the recording's rim (soft.shallow):
+    # a contact, however little weight its faint sub-pixel edge gives its points. Its value is
+    # the margin (px, ``fit.inner_margin_px``) the chord's depth is known to (soft.checks).
     shallow_chord: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.zeros(()))
     # The depth (px) of a soil chord the envelope saw (min_boundary_points on it), taken or not;
     # 0 where it saw none or without the recording's rim: with no contact, that much may hide.
