@@ -2,12 +2,12 @@
 
 For each image size, two fresh Python processes per round (XLA's defaults with
 ``SINKJAX_FAST_COMPILE=0``, the library's default, and its options with ``=1``), taking turns:
-each renders one synthetic
-frame of the 'full' preset (seed fixed, not timed), then times lowering and compiling the soft
-method's forward pass (``soft.estimator.measure``, rig numbers traced) and the gradient of its
-sinkage with respect to the thresholds, and the forward pass's median run time; and keeps the
-outputs, which must agree between the two (float64). One thread per process (``--threads``),
-as each ``make test`` worker has. Writes ``experiments/results/compile_options.{json,md}``.
+each renders one synthetic frame of the 'full' preset (seed fixed, not timed), then times
+lowering and compiling the soft method's forward pass (``soft.estimator.measure``, rig numbers
+traced) and the gradient of its sinkage with respect to the thresholds, and the forward pass's
+median run time; and keeps the outputs, which must agree between the two (float64). One thread
+per process (``--threads``), as each ``make test`` worker has. Writes
+``experiments/results/compile_options.{json,md}``.
 
     python experiments/compile_options.py            # 320x240 and 640x480, 2 rounds
     python experiments/compile_options.py --quick    # 320x240, 1 round

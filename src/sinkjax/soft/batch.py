@@ -32,7 +32,7 @@ from .rows import frame_result as frame_result
 from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel
-from .warm import placed_like, warm, warmed
+from .warm import first_time, placed_like, warm, warmed
 
 log = logging.getLogger("sinkjax")
 
@@ -283,7 +283,7 @@ class _Run:
         frames = self._frames(images)
         args = (frames[0], self.segmenter, self.arrays, rim)
         fn = self._fn("prepare", args)
-        if _provider is not None and self.default:
+        if _provider is not None and self.default and first_time(fn):
             # The later halves load while this one runs (soft.warm): their shapes from the
             # exported prepare's outputs, with no tracing of the method.
             out = placed_like(jax.eval_shape(fn, *args), frames[0])

@@ -23,6 +23,7 @@ import jax
 log = logging.getLogger("sinkjax")
 
 _started: dict[int, Future[None]] = {}  # by the compiled function's id
+_asked: set[int] = set()  # the functions first_time has seen
 _pool: ThreadPoolExecutor | None = None
 
 
@@ -32,9 +33,18 @@ def _forget() -> None:
     global _pool
     _pool = None
     _started.clear()
+    _asked.clear()
 
 
 os.register_at_fork(after_in_child=_forget)
+
+
+def first_time(fn: Any) -> bool:
+    """True the first time it is asked about ``fn`` in this process: what is loaded ahead of a
+    function's later halves is decided once, not on every batch."""
+    new = id(fn) not in _asked
+    _asked.add(id(fn))
+    return new
 
 
 def placed_like(tree: Any, array: jax.Array) -> Any:
