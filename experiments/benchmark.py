@@ -16,6 +16,7 @@ import csv
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from statistics import NormalDist
@@ -142,33 +143,23 @@ def metrics(frames: list[Frame], results: list[FrameResult]) -> dict[str, float]
     reea = sm.reea_pct(true["theta1"], est["theta1"], status)
     reda = sm.reda_pct(true["theta2"], est["theta2"], status)
     err = {q: sm.abs_error(true[q], est[q], status) for q in true}
+    std = {q: [getattr(r, sd) for r in results] for q, _, _, sd in QUANTITIES}
+
+    def coverage(k: Callable[[str, int], float]) -> dict[tuple[str, int], float]:
+        # The share of intervals value ± k(q, p) σ that hold the truth, per quantity and level.
+        return {
+            (q, p): sm.coverage_pct(true[q], est[q], std[q], status, k=k(q, p))
+            for q in true
+            for p in LEVELS
+        }
+
     # The interval at level p is value ± multiplier σ, the multiplier of the uncertainty model's
     # error distribution (a Student-t with its levels corrected: not the Gaussian's).
     model = sj.UncertaintyModel()
-    cov = {
-        (q, p): sm.coverage_pct(
-            true[q],
-            est[q],
-            [getattr(r, sd) for r in results],
-            status,
-            k=float(model.multiplier(p / 100, q)),
-        )
-        for q, _, _, sd in QUANTITIES
-        for p in LEVELS
-    }
-    # The same intervals read as a Gaussian's (value ± z σ: 0.674, 1.282, 1.960), as a user who
-    # takes σ for one standard deviation and nothing more builds them.
-    gauss = {
-        (q, p): sm.coverage_pct(
-            true[q],
-            est[q],
-            [getattr(r, sd) for r in results],
-            status,
-            k=float(NormalDist().inv_cdf(0.5 + p / 200)),
-        )
-        for q, _, _, sd in QUANTITIES
-        for p in LEVELS
-    }
+    cov = coverage(lambda q, p: float(model.multiplier(p / 100, q)))
+    # The same σ read as a Gaussian's (value ± z σ: 0.674, 1.282, 1.960), as a user who takes σ
+    # for one standard deviation and nothing more builds the intervals.
+    gauss = coverage(lambda q, p: NormalDist().inv_cdf(0.5 + p / 200))
     return {
         "frames": len(frames),
         "median_rel_sinkage_pct": sm.median(rel[deep]),
