@@ -168,7 +168,9 @@ def _default_backend() -> str:
 def _machine() -> str:
     import jax
 
-    devices = ", ".join(str(d) for d in jax.devices())
+    devices = ", ".join(
+        str(d) if d.platform == "cpu" else f"{d} ({d.device_kind})" for d in jax.devices()
+    )
     return (
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores visible, "
         f"Python {platform.python_version()}, jax {jax.__version__} on {devices}"

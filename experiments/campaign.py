@@ -115,22 +115,13 @@ def campaign(root: Path, n_rec: int, n_frames: int) -> dict:
 
 def steady_and_profile(n_frames: int, repeats: int) -> dict:
     """Steady-state ms per 640x480 frame (soft, classic) and the soft stages, in this process."""
-    import jax
-    import jax.numpy as jnp
     import numpy as np
+    from common.stages import stage_times
     from lean_classic import lean_rig, measure as lean_measure
 
     from sinkjax import synth as S
     from sinkjax.app.frames import Frame
     from sinkjax.app.pipeline import iter_estimates
-    from sinkjax.soft.adaptive import default_segmenter
-    from sinkjax.soft.colour import rgb_to_hsi
-    from sinkjax.soft.fit import build_evidence, fit, rim_and_boundary_capacity
-    from sinkjax.soft.hough import hough_rim
-    from sinkjax.soft.outline import extract_outline, refine_outline
-    from sinkjax.soft.segmentation import confidence_means, reference_mask, soft_mask
-    from sinkjax.soft.settings import SoftSettings
-    from sinkjax.soft.uncertainty import covariance, measurement_std
 
     w, h = SIZES[0]
     rng = np.random.default_rng(7)
@@ -174,74 +165,7 @@ def steady_and_profile(n_frames: int, repeats: int) -> dict:
     out["ratio_soft_to_lean_classic"] = round(out["soft_ms"] / out["lean_classic_ms"], 2)
 
     # Stages, each jitted alone on the real intermediate values of one frame.
-    s = SoftSettings()
-    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
-    image = jnp.asarray(images[1], dtype) / 255.0
-    rect = jnp.asarray(rig.confidence_rect, jnp.int32)
-    seg = rig.segmentation
-    sign = jnp.asarray(1.0 if rig.travel == "right" else -1.0, dtype)
-    radius = jnp.asarray(rig.wheel_radius_mm, dtype)
-
-    def mask_of(hh, ss, r):
-        h_w, s_w = confidence_means(hh, ss, r)
-        return soft_mask(hh, ss, h_w, s_w, seg)
-
-    def fit_of(outline, circle):
-        # As the estimator calls it: the solve on the weighted points alone.
-        ev = build_evidence(outline, circle, sign, s)
-        return fit(ev, capacity=rim_and_boundary_capacity(h, w))
-
-    def cov_of(outline, circle, p):
-        ev = build_evidence(outline, circle, sign, s)
-        return measurement_std(p, covariance(p, ev), radius)
-
-    segmenter = default_segmenter(seg)
-    stages = {
-        "segmenter part: HSI": (jax.jit(rgb_to_hsi), lambda: (image,)),
-        "segmenter part: H/S band (confidence means + soft mask)": (
-            jax.jit(mask_of),
-            lambda: (hh, ss, rect),
-        ),
-        "segmenter part: soil/background veto (reference colours, nearest-mean)": (
-            jax.jit(lambda im, r: reference_mask(im, r, seg.veto_fraction)),
-            lambda: (image, rect),
-        ),
-        "segmenter part: colour switch (the wheel's mean chroma)": (
-            jax.jit(lambda im, r: segmenter.coloured(im, r)),
-            lambda: (image, rect),
-        ),
-        "default segmenter, all of the above in one call": (
-            jax.jit(lambda im, r: segmenter(im, r)),
-            lambda: (image, rect),
-        ),
-        "outline (extract + refine)": (
-            jax.jit(lambda im, m: refine_outline(im, extract_outline(m, s), s)),
-            lambda: (image, mask),
-        ),
-        "Hough start circle": (jax.jit(lambda o: hough_rim(o, h, w, s)), lambda: (outline,)),
-        "evidence + Levenberg-Marquardt fit": (jax.jit(fit_of), lambda: (outline, circle)),
-        "covariance + delta method": (jax.jit(cov_of), lambda: (outline, circle, params)),
-    }
-    hh = ss = mask = outline = circle = params = None
-    rows = []
-    for name, (fn, args) in stages.items():
-        result = jax.block_until_ready(fn(*args()))
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*args()))
-            times.append(1000 * (time.perf_counter() - t0))
-        rows.append({"stage": name, "ms": round(statistics.median(times), 3)})
-        if name.endswith("HSI"):
-            hh, ss, _ = result
-        elif name.startswith("default segmenter"):
-            mask = result
-        elif name.startswith("outline"):
-            outline = result
-        elif name.startswith("Hough"):
-            circle = result
-        elif name.startswith("evidence"):
-            params = result.params
+    rows = stage_times(images[1], rig, repeats)
     out["stages"] = rows
     # The segmenter's parts are inside its own row: the sum counts that row alone.
     out["stages_sum_ms"] = round(

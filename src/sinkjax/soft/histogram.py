@@ -16,6 +16,12 @@ from jaxtyping import Array, Bool, Float
 
 _HIST_BINS = 64
 _LOG_I_MIN = float(np.log(1.0 / 255.0))  # one 8-bit step: the darkest intensity binned
+# Pixels are counted into this many copies of the histogram (pixel i into copy i % _COPIES), then
+# the copies are summed: on a GPU every count is an atomic add, and neighbouring pixels (of one
+# intensity) into one bin wait for each other; spread over the copies they do not (a 640x480
+# batch's histograms took 6 ms each on an H200, experiments/gpu_profile.py). Counts of 0/1
+# weights are whole numbers, so the sum is exact whatever the order.
+_COPIES = 32
 # A valley parts two populations when it lies at least this far (relative) below the smaller
 # of them, each holding at least this share of the pixels in one bin.
 _VALLEY_DEPTH = 0.25
@@ -32,7 +38,16 @@ def log_histogram(
     scale = _HIST_BINS / -_LOG_I_MIN
     idx = jnp.clip(jnp.floor((log_i - _LOG_I_MIN) * scale).astype(jnp.int32), 0, _HIST_BINS - 1)
     w = jnp.ones_like(log_i) if weight is None else weight[::2, ::2]
-    counts = jnp.zeros(_HIST_BINS, intensity.dtype).at[idx.ravel()].add(w.ravel())
+    copy = jnp.arange(idx.size, dtype=jnp.int32) % _COPIES
+    # A pixel of weight 0 adds nothing: it is left out (an index past the end is dropped).
+    slot = jnp.where(w.ravel() > 0, copy * _HIST_BINS + idx.ravel(), _COPIES * _HIST_BINS)
+    counts = (
+        jnp.zeros(_COPIES * _HIST_BINS, intensity.dtype)
+        .at[slot]
+        .add(w.ravel(), mode="drop")
+        .reshape(_COPIES, _HIST_BINS)
+        .sum(axis=0)
+    )
     kernel = jnp.asarray([1.0, 2.0, 3.0, 2.0, 1.0], intensity.dtype) / 9.0
     centres = _LOG_I_MIN + (jnp.arange(_HIST_BINS, dtype=intensity.dtype) + 0.5) / scale
     return jnp.convolve(counts, kernel, mode="same"), centres

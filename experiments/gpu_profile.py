@@ -1,0 +1,271 @@
+"""On a GPU: where a batch of frames spends its time (issue 13, items 4 and 5).
+
+The four distinct 640x480 frames of ``make bench`` (``experiments/bench.py``), padded to one
+batch, the recording's rim found first as the pipeline does. Three measurements, in one process:
+
+1. The two compiled halves (mask stage ``prepare``, fit stage ``finish``) on the batch already on
+   the device, timed apart (median of ``--repeats``), and together as frames/s.
+2. Each stage of ``common.stages`` compiled alone under ``jax.vmap`` on the batch (one frame
+   repeated), ms per batch.
+3. A profiler trace of one prepare + finish (``jax.profiler``, CUPTI): the GPU kernels' time
+   summed by kernel and by the JAX operation that made it (its source path), the top rows kept.
+
+    python experiments/gpu_profile.py --batch 128 --out gpu_profile.json
+    python experiments/gpu_profile.py --report before.json after.json --md gpu_profile.md
+
+``experiments/results/gpu_profile.md`` compares the runs before and after the Hough and
+histogram scatters stopped queueing on one address (one NVIDIA H200).
+
+CPU runs work too (``--no-trace``), but the numbers that matter are the GPU's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import gzip
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import bench
+from common.stages import stage_times
+
+from sinkjax import synth as S
+from sinkjax.soft.batch import SoftRecording, _Run
+
+
+def halves(images: list[np.ndarray], rig, repeats: int) -> tuple[dict, tuple]:
+    """ms per batch of each compiled half, frames on the device, results left there."""
+    import jax
+
+    n = len(images)
+    recording = SoftRecording()
+    recording(images, rig, [f"d{i}" for i in range(n)], pad_to=n)  # finds the rim
+    rim = recording.rim_for(*images[0].shape[:2])
+    run = _Run(rig, None, n)
+    run.vmap = True  # the batched (vmapped) functions, also on a CPU
+    frames = jax.device_put(np.stack(images))
+    prepare = run._fn("prepare", (frames, run.segmenter, run.arrays, rim))
+    prepared = jax.block_until_ready(prepare(frames, run.segmenter, run.arrays, rim))
+    finish = run._fn("finish", (frames, prepared, run.arrays))
+    out = jax.block_until_ready(finish(frames, prepared, run.arrays))
+    times: dict[str, list[float]] = {"prepare": [], "finish": [], "both": []}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(prepare(frames, run.segmenter, run.arrays, rim))
+        t1 = time.perf_counter()
+        jax.block_until_ready(finish(frames, prepared, run.arrays))
+        t2 = time.perf_counter()
+        jax.block_until_ready(
+            finish(frames, prepare(frames, run.segmenter, run.arrays, rim), run.arrays)
+        )
+        t3 = time.perf_counter()
+        times["prepare"].append(1000 * (t1 - t0))
+        times["finish"].append(1000 * (t2 - t1))
+        times["both"].append(1000 * (t3 - t2))
+    ms = {k: round(statistics.median(v), 3) for k, v in times.items()}
+    ms["frames_per_s"] = round(1000 * n / ms["both"], 1)
+    statuses = np.asarray(out.status).tolist()
+    ms["statuses_first4"] = statuses[:4]
+    ms["z0_mm_first4"] = [round(float(z), 4) for z in np.asarray(out.sinkage_mm)[:4]]
+    ms["z0_mm_spread"] = [  # the same frame repeated in the batch: any spread is the device's
+        round(float(np.ptp(np.asarray(out.sinkage_mm)[i::4])), 6) for i in range(4)
+    ]
+
+    def call() -> None:
+        jax.block_until_ready(
+            finish(frames, prepare(frames, run.segmenter, run.arrays, rim), run.arrays)
+        )
+
+    return ms, (call,)
+
+
+def _op_path(args: dict) -> str:
+    for key in ("tf_op", "long_name", "hlo_op", "name"):
+        if key in args and isinstance(args[key], str):
+            return args[key]
+    return ""
+
+
+def trace_summary(call, top: int = 60, keep: str | None = None) -> dict:
+    """Run ``call`` under the profiler; GPU kernel time summed by kernel and by JAX op path."""
+    import jax
+
+    with tempfile.TemporaryDirectory() as tmp:
+        call()
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            call()
+        found = glob.glob(f"{tmp}/**/perfetto_trace.json.gz", recursive=True)
+        if not found:
+            listing = glob.glob(tmp + "/**", recursive=True)
+            return {"error": f"no perfetto trace under {tmp}: {listing}"}
+        if keep:
+            shutil.copy(found[0], keep)
+        with gzip.open(found[0], "rt") as f:
+            data = json.load(f)
+    events = data["traceEvents"] if isinstance(data, dict) else data
+    pname: dict = {}
+    tname: dict = {}
+    for e in events:
+        if e.get("ph") == "M" and e.get("name") == "process_name":
+            pname[e["pid"]] = e.get("args", {}).get("name", "")
+        if e.get("ph") == "M" and e.get("name") == "thread_name":
+            tname[(e["pid"], e.get("tid"))] = e.get("args", {}).get("name", "")
+    by_process: dict = defaultdict(float)
+    by_kernel: dict = defaultdict(lambda: [0.0, 0])
+    by_op: dict = defaultdict(lambda: [0.0, 0])
+    by_op_prefix: dict = defaultdict(float)
+    samples = []
+    gpu_span = [float("inf"), 0.0]
+    for e in events:
+        if e.get("ph") != "X" or "dur" not in e:
+            continue
+        proc = pname.get(e.get("pid"), "")
+        by_process[proc] += float(e["dur"])
+        if "GPU" not in proc and "gpu" not in proc:
+            continue
+        dur = float(e["dur"])
+        gpu_span[0] = min(gpu_span[0], float(e["ts"]))
+        gpu_span[1] = max(gpu_span[1], float(e["ts"]) + dur)
+        k = by_kernel[e.get("name", "")]
+        k[0] += dur
+        k[1] += 1
+        path = _op_path(e.get("args", {}))
+        o = by_op[path]
+        o[0] += dur
+        o[1] += 1
+        parts = [p for p in path.split("/") if p]
+        by_op_prefix["/".join(parts[:6])] += dur
+        if len(samples) < 25:
+            thread = tname.get((e.get("pid"), e.get("tid")))
+            samples.append({**e, "process": proc, "thread": thread})
+
+    def rows(d: dict) -> list:
+        items = sorted(d.items(), key=lambda kv: -kv[1][0])[:top]
+        return [{"name": k[:300], "us": round(v[0], 1), "count": v[1]} for k, v in items]
+
+    return {
+        "processes_us": {k: round(v, 1) for k, v in by_process.items()},
+        "gpu_kernel_us_total": round(sum(v[0] for v in by_kernel.values()), 1),
+        "gpu_span_us": round(gpu_span[1] - gpu_span[0], 1) if gpu_span[1] else None,
+        "kernels": rows(by_kernel),
+        "ops": rows(by_op),
+        "op_prefixes": [
+            {"name": k[:300], "us": round(v, 1)}
+            for k, v in sorted(by_op_prefix.items(), key=lambda kv: -kv[1])[:top]
+        ],
+        "samples": samples,
+    }
+
+
+def report(paths: list[str]) -> str:
+    """Markdown: each run's halves, its stages (if timed) and its top GPU kernels (if traced)."""
+    runs = [(Path(p).stem, json.loads(Path(p).read_text(encoding="utf-8"))) for p in paths]
+    lines = [
+        "# The soft method on a GPU, stage by stage (`experiments/gpu_profile.py`)",
+        "",
+        "ms per batch (median); frames already on the device, results left there.",
+        "",
+        "| run | machine | image | batch | prepare [ms] | finish [ms] | both [ms] | frames/s "
+        "| z0 of the 4 frames [mm] |",
+        "|---|---|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for name, r in runs:
+        h = r["halves_ms"]
+        z0 = ", ".join(f"{z:.4f}" for z in h.get("z0_mm_first4", []))
+        lines.append(
+            f"| {name} | {r['machine']} | {r['size']} | {r['batch']} | {h['prepare']:.1f} | "
+            f"{h['finish']:.1f} | {h['both']:.1f} | {h['frames_per_s']:.0f} | {z0} |"
+        )
+    staged = [(n, r) for n, r in runs if "stages_ms_per_batch" in r]
+    if staged:
+        lines += [
+            "",
+            "## Stages, each compiled alone under `jax.vmap` (ms per batch)",
+            "",
+            "| stage | " + " | ".join(n for n, _ in staged) + " |",
+            "|---|" + "---:|" * len(staged),
+        ]
+        for i, row in enumerate(staged[0][1]["stages_ms_per_batch"]):
+            cells = [f"{r['stages_ms_per_batch'][i]['ms']:.2f}" for _, r in staged]
+            lines.append(f"| {row['stage']} | " + " | ".join(cells) + " |")
+    for name, r in runs:
+        if "kernels" not in r.get("trace", {}):
+            continue
+        tr = r["trace"]
+        lines += [
+            "",
+            f"## {name}: the GPU's kernels in one prepare + finish",
+            "",
+            f"Kernel time {tr['gpu_kernel_us_total'] / 1000:.1f} ms over a span of "
+            f"{tr['gpu_span_us'] / 1000:.1f} ms. The ten longest:",
+            "",
+            "| kernel | ms | launches |",
+            "|---|---:|---:|",
+            *(
+                f"| `{k['name'][:60]}` | {k['us'] / 1000:.2f} | {k['count']} |"
+                for k in tr["kernels"][:10]
+            ),
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--batch", type=int, default=128)
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--no-stages", action="store_true")
+    parser.add_argument("--no-trace", action="store_true")
+    parser.add_argument("--out", default="gpu_profile.json")
+    parser.add_argument("--keep-trace", help="also copy the perfetto trace (.json.gz) here")
+    parser.add_argument("--report", nargs="+", metavar="JSON", help="tabulate saved runs")
+    parser.add_argument("--md", default="gpu_profile.md", help="--report's Markdown file")
+    args = parser.parse_args(argv)
+    if args.report:
+        text = report(args.report)
+        Path(args.md).write_text(text, encoding="utf-8")
+        print(text)
+        return 0
+    t_start = time.perf_counter()
+    rng = np.random.default_rng(0)  # the frames of bench.py
+    scenes = S.recording_scenes(rng, bench.N_DISTINCT, width=args.width, height=args.height)
+    rig = S.rig_for(scenes[0])
+    rendered = [S.render(scene, seed=i)[0] for i, scene in enumerate(scenes)]
+    images = [rendered[i % len(rendered)] for i in range(args.batch)]
+    out: dict = {"machine": bench._machine(), "batch": args.batch}
+    out["size"] = f"{args.width}x{args.height}"
+
+    def save() -> None:
+        out["seconds"] = round(time.perf_counter() - t_start, 1)
+        Path(args.out).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+
+    t0 = time.perf_counter()
+    out["halves_ms"], (call,) = halves(images, rig, args.repeats)
+    out["halves_first_s"] = round(time.perf_counter() - t0, 1)
+    print("halves", out["halves_ms"], flush=True)
+    save()
+    if not args.no_trace:
+        out["trace"] = trace_summary(call, keep=args.keep_trace)
+        print("trace", {k: out["trace"].get(k) for k in ("gpu_kernel_us_total", "gpu_span_us")})
+        save()
+    if not args.no_stages:
+        out["stages_ms_per_batch"] = stage_times(rendered[1], rig, args.repeats, args.batch)
+        print("stages", out["stages_ms_per_batch"], flush=True)
+        save()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
