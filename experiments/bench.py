@@ -108,10 +108,11 @@ def _on_accelerator() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _device_rates(images: list, rig) -> dict:
-    """Frames/s of the soft method's compiled functions alone on one padded batch: frames
-    already on the device with results left there, and host images in, host arrays out (what
-    the pipeline does, without reading files or making rows)."""
+def device_halves(images: list, rig) -> tuple:
+    """The soft method's two compiled halves on one padded batch put on the device, the
+    recording's rim found first as the pipeline does: ``(run, rim, prepare, finish)`` with
+    ``prepare()`` the mask stage of the batch and ``finish(prepared)`` its fit stage, results
+    left on the device. Batched (vmapped) functions, also on a CPU."""
     import jax
     import numpy as np
 
@@ -122,6 +123,29 @@ def _device_rates(images: list, rig) -> dict:
     recording(images, rig, [f"d{i}" for i in range(n)], pad_to=n)  # finds the rim
     rim = recording.rim_for(*images[0].shape[:2])
     run = _Run(rig, None, n)
+    run.vmap = True
+    frames = jax.device_put(np.stack(images))
+    prepare_fn = run._fn("prepare", (frames, run.segmenter, run.arrays, rim))
+    prepared = prepare_fn(frames, run.segmenter, run.arrays, rim)
+    finish_fn = run._fn("finish", (frames, prepared, run.arrays))
+
+    def prepare() -> object:
+        return prepare_fn(frames, run.segmenter, run.arrays, rim)
+
+    def finish(prepared: object) -> object:
+        return finish_fn(frames, prepared, run.arrays)
+
+    return run, rim, prepare, finish
+
+
+def _device_rates(images: list, rig) -> dict:
+    """Frames/s of the soft method's compiled functions alone on one padded batch: frames
+    already on the device with results left there, and host images in, host arrays out (what
+    the pipeline does, without reading files or making rows)."""
+    import jax
+
+    n = len(images)
+    run, rim, prepare, finish = device_halves(images, rig)
 
     run.finish(images, run.prepare(images, rim))
     t0 = time.perf_counter()
@@ -129,15 +153,11 @@ def _device_rates(images: list, rig) -> dict:
         run.finish(images, run.prepare(images, rim))
     host_s = (time.perf_counter() - t0) / DEVICE_REPS
 
-    frames = jax.device_put(np.stack(images))
-    prepare = run._fn("prepare", (frames, run.segmenter, run.arrays, rim))
-    prepared = prepare(frames, run.segmenter, run.arrays, rim)
-    finish = run._fn("finish", (frames, prepared, run.arrays))
-    jax.block_until_ready(finish(frames, prepared, run.arrays))
+    jax.block_until_ready(finish(prepare()))
     t0 = time.perf_counter()
     out = None
     for _ in range(DEVICE_REPS):
-        out = finish(frames, prepare(frames, run.segmenter, run.arrays, rim), run.arrays)
+        out = finish(prepare())
     jax.block_until_ready(out)
     device_s = (time.perf_counter() - t0) / DEVICE_REPS
     return {"device_fps": n / device_s, "transfer_fps": n / host_s}

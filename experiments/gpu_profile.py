@@ -8,7 +8,7 @@ batch, the recording's rim found first as the pipeline does. Three measurements,
 2. Each stage of ``common.stages`` compiled alone under ``jax.vmap`` on the batch (one frame
    repeated), ms per batch.
 3. A profiler trace of one prepare + finish (``jax.profiler``, CUPTI): the GPU kernels' time
-   summed by kernel and by the JAX operation that made it (its source path), the top rows kept.
+   summed by compiled function and kernel, the top rows kept.
 
     python experiments/gpu_profile.py --batch 128 --out gpu_profile.json
     python experiments/gpu_profile.py --report before.json after.json --md gpu_profile.md
@@ -31,6 +31,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -41,64 +42,41 @@ import bench
 from common.stages import stage_times
 
 from sinkjax import synth as S
-from sinkjax.soft.batch import SoftRecording, _Run
 
 
-def halves(images: list[np.ndarray], rig, repeats: int) -> tuple[dict, tuple]:
-    """ms per batch of each compiled half, frames on the device, results left there."""
+def halves(images: list[np.ndarray], rig, repeats: int) -> tuple[dict, Callable[[], None]]:
+    """ms per batch of each compiled half, frames on the device, results left there; and a
+    function running both once (for the trace)."""
     import jax
 
     n = len(images)
-    recording = SoftRecording()
-    recording(images, rig, [f"d{i}" for i in range(n)], pad_to=n)  # finds the rim
-    rim = recording.rim_for(*images[0].shape[:2])
-    run = _Run(rig, None, n)
-    run.vmap = True  # the batched (vmapped) functions, also on a CPU
-    frames = jax.device_put(np.stack(images))
-    prepare = run._fn("prepare", (frames, run.segmenter, run.arrays, rim))
-    prepared = jax.block_until_ready(prepare(frames, run.segmenter, run.arrays, rim))
-    finish = run._fn("finish", (frames, prepared, run.arrays))
-    out = jax.block_until_ready(finish(frames, prepared, run.arrays))
+    _, _, prepare, finish = bench.device_halves(images, rig)
+    prepared = jax.block_until_ready(prepare())
+    out = jax.block_until_ready(finish(prepared))
     times: dict[str, list[float]] = {"prepare": [], "finish": [], "both": []}
     for _ in range(repeats):
         t0 = time.perf_counter()
-        jax.block_until_ready(prepare(frames, run.segmenter, run.arrays, rim))
+        jax.block_until_ready(prepare())
         t1 = time.perf_counter()
-        jax.block_until_ready(finish(frames, prepared, run.arrays))
+        jax.block_until_ready(finish(prepared))
         t2 = time.perf_counter()
-        jax.block_until_ready(
-            finish(frames, prepare(frames, run.segmenter, run.arrays, rim), run.arrays)
-        )
+        jax.block_until_ready(finish(prepare()))
         t3 = time.perf_counter()
         times["prepare"].append(1000 * (t1 - t0))
         times["finish"].append(1000 * (t2 - t1))
         times["both"].append(1000 * (t3 - t2))
     ms = {k: round(statistics.median(v), 3) for k, v in times.items()}
     ms["frames_per_s"] = round(1000 * n / ms["both"], 1)
-    statuses = np.asarray(out.status).tolist()
-    ms["statuses_first4"] = statuses[:4]
+    ms["statuses_first4"] = np.asarray(out.status).tolist()[:4]
     ms["z0_mm_first4"] = [round(float(z), 4) for z in np.asarray(out.sinkage_mm)[:4]]
     ms["z0_mm_spread"] = [  # the same frame repeated in the batch: any spread is the device's
-        round(float(np.ptp(np.asarray(out.sinkage_mm)[i::4])), 6) for i in range(4)
+        round(float(np.ptp(np.asarray(out.sinkage_mm)[i::4])), 6) for i in range(min(4, n))
     ]
-
-    def call() -> None:
-        jax.block_until_ready(
-            finish(frames, prepare(frames, run.segmenter, run.arrays, rim), run.arrays)
-        )
-
-    return ms, (call,)
+    return ms, lambda: jax.block_until_ready(finish(prepare()))
 
 
-def _op_path(args: dict) -> str:
-    for key in ("tf_op", "long_name", "hlo_op", "name"):
-        if key in args and isinstance(args[key], str):
-            return args[key]
-    return ""
-
-
-def trace_summary(call, top: int = 60, keep: str | None = None) -> dict:
-    """Run ``call`` under the profiler; GPU kernel time summed by kernel and by JAX op path."""
+def trace_summary(call: Callable[[], None], top: int = 60, keep: str | None = None) -> dict:
+    """Run ``call`` under the profiler; GPU kernel time summed by compiled function and kernel."""
     import jax
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -114,57 +92,34 @@ def trace_summary(call, top: int = 60, keep: str | None = None) -> dict:
         with gzip.open(found[0], "rt") as f:
             data = json.load(f)
     events = data["traceEvents"] if isinstance(data, dict) else data
-    pname: dict = {}
-    tname: dict = {}
-    for e in events:
-        if e.get("ph") == "M" and e.get("name") == "process_name":
-            pname[e["pid"]] = e.get("args", {}).get("name", "")
-        if e.get("ph") == "M" and e.get("name") == "thread_name":
-            tname[(e["pid"], e.get("tid"))] = e.get("args", {}).get("name", "")
+    pname = {
+        e["pid"]: e.get("args", {}).get("name", "")
+        for e in events
+        if e.get("ph") == "M" and e.get("name") == "process_name"
+    }
     by_process: dict = defaultdict(float)
     by_kernel: dict = defaultdict(lambda: [0.0, 0])
-    by_op: dict = defaultdict(lambda: [0.0, 0])
-    by_op_prefix: dict = defaultdict(float)
-    samples = []
     gpu_span = [float("inf"), 0.0]
     for e in events:
         if e.get("ph") != "X" or "dur" not in e:
             continue
         proc = pname.get(e.get("pid"), "")
-        by_process[proc] += float(e["dur"])
-        if "GPU" not in proc and "gpu" not in proc:
-            continue
         dur = float(e["dur"])
+        by_process[proc] += dur
+        if "GPU" not in proc.upper():
+            continue
         gpu_span[0] = min(gpu_span[0], float(e["ts"]))
         gpu_span[1] = max(gpu_span[1], float(e["ts"]) + dur)
-        k = by_kernel[e.get("name", "")]
+        module = e.get("args", {}).get("hlo_module", "")
+        k = by_kernel[f"{module}: {e.get('name', '')}" if module else e.get("name", "")]
         k[0] += dur
         k[1] += 1
-        path = _op_path(e.get("args", {}))
-        o = by_op[path]
-        o[0] += dur
-        o[1] += 1
-        parts = [p for p in path.split("/") if p]
-        by_op_prefix["/".join(parts[:6])] += dur
-        if len(samples) < 25:
-            thread = tname.get((e.get("pid"), e.get("tid")))
-            samples.append({**e, "process": proc, "thread": thread})
-
-    def rows(d: dict) -> list:
-        items = sorted(d.items(), key=lambda kv: -kv[1][0])[:top]
-        return [{"name": k[:300], "us": round(v[0], 1), "count": v[1]} for k, v in items]
-
+    kernels = sorted(by_kernel.items(), key=lambda kv: -kv[1][0])[:top]
     return {
         "processes_us": {k: round(v, 1) for k, v in by_process.items()},
         "gpu_kernel_us_total": round(sum(v[0] for v in by_kernel.values()), 1),
         "gpu_span_us": round(gpu_span[1] - gpu_span[0], 1) if gpu_span[1] else None,
-        "kernels": rows(by_kernel),
-        "ops": rows(by_op),
-        "op_prefixes": [
-            {"name": k[:300], "us": round(v, 1)}
-            for k, v in sorted(by_op_prefix.items(), key=lambda kv: -kv[1])[:top]
-        ],
-        "samples": samples,
+        "kernels": [{"name": k[:300], "us": round(v[0], 1), "count": v[1]} for k, v in kernels],
     }
 
 
@@ -252,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.out).write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
 
     t0 = time.perf_counter()
-    out["halves_ms"], (call,) = halves(images, rig, args.repeats)
+    out["halves_ms"], call = halves(images, rig, args.repeats)
     out["halves_first_s"] = round(time.perf_counter() - t0, 1)
     print("halves", out["halves_ms"], flush=True)
     save()
