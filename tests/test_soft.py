@@ -19,8 +19,9 @@ from sinkjax.geometry import equivalent_line, from_wheel_frame
 from sinkjax.result import FEATURES_HUE_SAT
 from sinkjax.rig import Rig, SegmentationParams, save_rig
 from sinkjax.soft.batch import estimate_batch
+from sinkjax.soft.ends import boundary_ends, end_kernel
 from sinkjax.soft.estimator import measure
-from sinkjax.soft.fit import boundary_ends, end_kernel, fit, weighted_points
+from sinkjax.soft.fit import fit, weighted_points
 from sinkjax.soft.model import Evidence, measurements
 from sinkjax.soft.uncertainty import UncertaintyModel, covariance, measurement_std
 from sinkjax.status import Status

@@ -16,76 +16,12 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
 from ..geometry import equivalent_line
+from .ends import end_weights, orthogonal_line
 from .hough import Circle
 from .model import Evidence, residuals
 from .outline import Outline, compact
 from .settings import SoftSettings
 from .shallow import shallow_boundary
-
-
-def end_window_px(r_px: Array, settings: SoftSettings) -> Array:
-    """Length of boundary used to find each end's tangent: short enough to follow the surface.
-
-    Whole pixels: the circle it scales with is found without a gradient (the Hough search), and
-    the window's taper (:func:`end_kernel`) would otherwise move with it where ``jax.grad``
-    cannot see."""
-    s = settings.astype(r_px.dtype)
-    return jnp.round(
-        jnp.clip(s.end_window_fraction * r_px, s.end_window_min_px, s.end_window_max_px)
-    )
-
-
-def end_kernel(dist2_px2: Array, window_px: Array, taper: Array) -> Array:
-    """Weight of a boundary point at squared distance ``dist2_px2`` from an end in that end's
-    window: 0 beyond the window; inside it 1 - taper + taper * (1 - (d / window)^2)^2 (a
-    biweight kernel for ``taper`` 1), so that the points next to the rim decide the end's
-    tangent and a rut's or a bump's edge at the far side of the window pulls less. Squared
-    distances: the end point's own distance is 0, where a norm's gradient is NaN."""
-    w2 = window_px * window_px
-    q2 = jnp.clip(dist2_px2 / w2, 0.0, 1.0)
-    inside = (dist2_px2 < w2).astype(dist2_px2.dtype)
-    return inside * (1.0 - taper + taper * (1.0 - q2) ** 2)
-
-
-def boundary_ends(u: Array, present: Array, window_px: Array) -> tuple[Array, Array]:
-    """Indices of the boundary's end-most points, A's (largest u) and B's (smallest u), among
-    the ``present`` ones that start a stretch of boundary: at least half of the end's window
-    (``window_px`` along u, towards the other end) holds present points (about one a pixel on
-    an edge). A stray edge beyond a gap (a lug's or a hole's corner near the rim, a speck) would
-    otherwise be the end, and the window's taper (:func:`end_kernel`) gives the end-most points
-    the most say in the tangent. Where no point starts such a stretch (a boundary shorter than
-    half a window), the plain extremes. Discrete choices: no gradient flows through them."""
-    dt = u.dtype
-    su = jnp.sort(jnp.where(present, u, jnp.inf))
-    idx = jnp.arange(su.shape[0], dtype=jnp.int32)
-    valid = idx < jnp.sum(present.astype(jnp.int32)).astype(jnp.int32)
-    need = 0.5 * window_px.astype(dt)
-
-    def count(a: Array, b: Array) -> Array:
-        return (a - b).astype(dt)
-
-    # Present points in [u_i, u_i + window) and in (u_i - window, u_i].
-    ahead = count(jnp.searchsorted(su, su + window_px, side="left").astype(jnp.int32), idx)
-    from_b = valid & (ahead >= need)
-    u_b = jnp.where(jnp.any(from_b), su[jnp.argmax(from_b)], -jnp.inf)
-    behind = count(idx + 1, jnp.searchsorted(su, su - window_px, side="right").astype(jnp.int32))
-    to_a = valid & (behind >= need)
-    last = su.shape[0] - 1 - jnp.argmax(to_a[::-1])
-    u_a = jnp.where(jnp.any(to_a), su[last], jnp.inf)
-    i_a = jnp.argmax(jnp.where(present & (u <= u_a), u, -jnp.inf))
-    i_b = jnp.argmin(jnp.where(present & (u >= u_b), u, jnp.inf))
-    return i_a, i_b
-
-
-def _orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
-    # Total least squares line through weighted points: angle of the main axis, offset from O.
-    sw = jnp.maximum(jnp.sum(w), 1e-9)
-    um, vm = jnp.sum(w * u) / sw, jnp.sum(w * v) / sw
-    suu = jnp.sum(w * (u - um) ** 2)
-    svv = jnp.sum(w * (v - vm) ** 2)
-    suv = jnp.sum(w * (u - um) * (v - vm))
-    alpha = 0.5 * jnp.arctan2(2 * suv, suu - svv + 1e-12)
-    return alpha, -jnp.sin(alpha) * um + jnp.cos(alpha) * vm
 
 
 def _window_means(
@@ -258,24 +194,14 @@ def build_evidence(
     # the rim edge (smoothing rounds that corner over a few pixels and would bend them upward).
     clear = (dr < -s.end_clearance_px).astype(dt)
     w_end = w_line * clear
-    present = w_end > 0.5 * jnp.max(w_end)
-    win = end_window_px(circle.r_px, s)
-    i_a, i_b = boundary_ends(u, present, win)
-    dist2_a = (u - u[i_a]) ** 2 + (v - v[i_a]) ** 2
-    near_a = end_kernel(dist2_a, win, s.end_taper)
-    near_b = end_kernel((u - u[i_b]) ** 2 + (v - v[i_b]) ** 2, win, s.end_taper)
-    # One per point at the strongest, whatever scales the boundary's weights (a soft mask that
-    # leaves some wheel below the soil edge): the ends' priors are counted in boundary points.
-    w_end = w_end / jnp.maximum(jnp.max(w_end), 1e-6)
-    w_a = w_end * near_a
-    w_b = w_end * near_b * (dist2_a >= win * win).astype(dt)
+    w_a, w_b, i_a, i_b = end_weights(u, v, w_end, circle.r_px, s)
 
     k0, b0 = equivalent_line(u, v, w_line)
     # An end with too few points (a very short boundary) starts from the equivalent line.
     line_alpha = jnp.arctan(k0)
     line_c = b0 * jnp.cos(line_alpha)
-    alpha_a, c_a = _orthogonal_line(u, v, w_a)
-    alpha_b, c_b = _orthogonal_line(u, v, w_b)
+    alpha_a, c_a = orthogonal_line(u, v, w_a)
+    alpha_b, c_b = orthogonal_line(u, v, w_b)
     few_a = jnp.sum(w_a) < 3.0
     few_b = jnp.sum(w_b) < 3.0
     alpha_a, c_a = jnp.where(few_a, line_alpha, alpha_a), jnp.where(few_a, line_c, c_a)

@@ -61,15 +61,20 @@ class SoftSettings(eqx.Module):
     - ``wheel_below_scale_px``: soft scale of the wheel allowed below a boundary point in its
       column. Small: the top edge of a lightening hole near the soil has only a few pixels of
       wheel between the hole and the soil.
-    - ``end_window_fraction``, ``end_window_min_px``, ``end_window_max_px``: length of boundary
-      used for each end's curve, a fraction of the rim radius clipped to [min, max] px. The end
+    - ``end_window_fraction``, ``end_window_min_px``, ``end_window_max_px``: the longest length
+      of boundary used for each end's curve, a fraction of the rim radius clipped to [min, max]
+      px; the shortest window tried is ``end_window_min_px`` (``end_window_z`` below). The end
       curve bends (``sinkjax.soft.model``), so the window may be long enough to average noise
       without tilting the tangent at the rim.
     - ``end_taper``: how much the window's points are down-weighted with their distance from the
-      end (``sinkjax.soft.fit.end_kernel``: 0 uniform, 1 a biweight kernel). A rut's or a pile's
+      end (``sinkjax.soft.ends.end_kernel``: 0 uniform, 1 a biweight kernel). A rut's or a pile's
       edge inside the window is not a bend the curve can follow; tapered, the points nearest the
       rim decide the tangent (``experiments/end_tangents.py``: on the paper rig's bulldozed
       frames the exit angle's median error 0.83 -> 0.53 deg with the smaller clearance).
+    - ``end_window_z``: the window's length is chosen per end and frame
+      (``sinkjax.soft.ends.chosen_window``): the longest of a ladder of windows, from
+      ``end_window_min_px`` to the length above, whose rim crossing agrees with every shorter
+      one's within this many standard errors each. ``inf`` keeps the longest window always.
 
     Model and priors (``sinkjax.soft.model``):
 
@@ -116,6 +121,7 @@ class SoftSettings(eqx.Module):
     end_window_min_px: Float[Array, ""] = _scalar(8.0)
     end_window_max_px: Float[Array, ""] = _scalar(40.0)
     end_taper: Float[Array, ""] = _scalar(1.0)
+    end_window_z: Float[Array, ""] = _scalar(2.0)
     rim_loss_scale_px: Float[Array, ""] = _scalar(1.0)
     end_loss_scale_px: Float[Array, ""] = _scalar(1.0)
     end_angle_prior_points: Float[Array, ""] = _scalar(0.1)
