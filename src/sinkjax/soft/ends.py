@@ -27,7 +27,8 @@ WINDOW_STEPS = 5  # windows in the ladder, geometric from the shortest to the lo
 
 
 def end_window_px(r_px: Array, settings: SoftSettings) -> Array:
-    """Length of boundary used to find each end's tangent: short enough to follow the surface.
+    """The longest length of boundary used to find each end's tangent (:func:`chosen_window`
+    picks each end's own, up to this): short enough to follow the surface.
 
     Whole pixels: the circle it scales with is found without a gradient (the Hough search), and
     the window's taper (:func:`end_kernel`) would otherwise move with it where ``jax.grad``
@@ -80,15 +81,22 @@ def boundary_ends(u: Array, present: Array, window_px: Array) -> tuple[Array, Ar
     return i_a, i_b
 
 
-def orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
-    """Total least squares line through weighted points: its angle and its offset from O."""
+def _line_and_centroid(u: Array, v: Array, w: Array) -> tuple[Array, Array, Array, Array]:
+    # Total least squares line through weighted points (angle, offset from O) and the points'
+    # weighted centroid, which the line passes through.
     sw = jnp.maximum(jnp.sum(w), 1e-9)
     um, vm = jnp.sum(w * u) / sw, jnp.sum(w * v) / sw
     suu = jnp.sum(w * (u - um) ** 2)
     svv = jnp.sum(w * (v - vm) ** 2)
     suv = jnp.sum(w * (u - um) * (v - vm))
     alpha = 0.5 * jnp.arctan2(2 * suv, suu - svv + 1e-12)
-    return alpha, -jnp.sin(alpha) * um + jnp.cos(alpha) * vm
+    return alpha, -jnp.sin(alpha) * um + jnp.cos(alpha) * vm, um, vm
+
+
+def orthogonal_line(u: Array, v: Array, w: Array) -> tuple[Array, Array]:
+    """Total least squares line through weighted points: its angle and its offset from O."""
+    alpha, c, _, _ = _line_and_centroid(u, v, w)
+    return alpha, c
 
 
 def _crossing_and_error(
@@ -103,10 +111,9 @@ def _crossing_and_error(
     scatter about the line (the offset's and the slope's errors carried to the crossing and
     along the rim). An infinite error where fewer than three points carry weight."""
     dt = u.dtype
-    alpha, c = orthogonal_line(u, v, w)
+    alpha, c, um, vm = _line_and_centroid(u, v, w)
     sw = jnp.sum(w)
     safe_sw = jnp.maximum(sw, 1e-9)
-    um, vm = jnp.sum(w * u) / safe_sw, jnp.sum(w * v) / safe_sw
     ca, sa = jnp.cos(alpha), jnp.sin(alpha)
     t = ca * (u - um) + sa * (v - vm)
     res = -sa * u + ca * v - c
