@@ -299,7 +299,7 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
     """A cheap smooth stand-in for the estimator: sinkage 40 P_d(S), theta1 60 P_d(H)."""
     state = {"status": 0, "boundary": 100.0, "nan": False}
 
-    def measure(image, seg, *, rect, travel, wheel_radius_mm, rim=None):
+    def measure(image, seg, *, rect, travel, wheel_radius_mm, rim=None, srgb=False):
         nan = jnp.nan if state["nan"] else 0.0
         return types.SimpleNamespace(
             sinkage_mm=40.0 * seg.p_d_sat + jnp.mean(image) + nan,
@@ -375,10 +375,10 @@ def test_one_compiled_loss_serves_every_rig(fake_measure, monkeypatch: pytest.Mo
     """The rig's rectangle, travel and radius reach the compiled loss as traced arrays: a
     second rig of the same image size compiles nothing, and each rig's numbers are its own."""
 
-    def measure(image, seg, *, rect, travel, wheel_radius_mm, rim=None):
-        # Sinkage from every rig number: radius / 5 + rect x + 10 (travel sign).
+    def measure(image, seg, *, rect, travel, wheel_radius_mm, rim=None, srgb=False):
+        # Sinkage from every rig number: radius / 5 + rect x + 10 (travel sign) + 7 (sRGB).
         x = jnp.asarray(rect[0]).astype(jnp.result_type(float))
-        sinkage = wheel_radius_mm / 5.0 + x + 10.0 * travel + 0.0 * seg.p_d_sat
+        sinkage = wheel_radius_mm / 5.0 + x + 10.0 * travel + 7.0 * srgb + 0.0 * seg.p_d_sat
         return types.SimpleNamespace(
             sinkage_mm=sinkage,
             theta1_rad=jnp.radians(60.0 * seg.p_d_hue),
@@ -395,9 +395,15 @@ def test_one_compiled_loss_serves_every_rig(fake_measure, monkeypatch: pytest.Mo
     )
     raw = C.to_raw(SegmentationParams())
     args = (jnp.asarray(frames.images), jnp.asarray(frames.targets))
-    rigs = [((0, 0, 2, 2), "right", 100.0), ((3, 1, 2, 2), "left", 150.0)]
-    for (rect, travel, radius), sinkage in zip(rigs, (30.0, 23.0), strict=True):
-        out = C.loss_value(raw, *args, rect=rect, travel=travel, wheel_radius_mm=radius)
+    rigs = [
+        ((0, 0, 2, 2), "right", 100.0, "linear"),
+        ((3, 1, 2, 2), "left", 150.0, "linear"),
+        ((3, 1, 2, 2), "left", 150.0, "srgb"),
+    ]
+    for (rect, travel, radius, coding), sinkage in zip(rigs, (30.0, 23.0, 30.0), strict=True):
+        out = C.loss_value(
+            raw, *args, rect=rect, travel=travel, wheel_radius_mm=radius, encoding=coding
+        )
         np.testing.assert_allclose(np.asarray(out.frames.values)[:, 0], sinkage, rtol=1e-12)
         assert float(out.loss) == pytest.approx(float(C.pseudo_huber(sinkage - 28.0)), rel=1e-12)
     assert CL._loss_value._cache_size() == 1

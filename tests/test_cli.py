@@ -283,7 +283,14 @@ def test_synth_command(tmp_path, monkeypatch, capsys):
     calls = _fake_synth(monkeypatch)
     args = ["synth", str(tmp_path / "s"), "--frames", "3", "--seed", "4", "--preset", "flat"]
     assert main([*args, "--width", "64", "--height", "48", "--travel", "left"]) == 0
-    assert calls == [dict(n_frames=3, seed=4, preset="flat", width=64, height=48, travel="left")]
+    want = dict(n_frames=3, seed=4, preset="flat", width=64, height=48, travel="left")
+    assert calls == [{**want, "encoding": "linear"}]
     assert "sinkjax estimate" in capsys.readouterr().out
+    assert (
+        main([*args, "--width", "64", "--height", "48", "--travel", "left", "--encoding", "srgb"])
+        == 0
+    )
+    assert calls[-1] == {**want, "encoding": "srgb"}
+    capsys.readouterr()
     assert main(["synth", str(tmp_path / "t"), "--preset", "nope"]) == 2
     assert "full, flat" in capsys.readouterr().err

@@ -79,10 +79,14 @@ class Rig(eqx.Module):
     # Optional: the rim's radius in image pixels, roughly; the rim search then looks within
     # RIM_HINT_TOLERANCE of it instead of over the default fractions of the image size.
     rim_radius_px: float | None = eqx.field(static=True, default=None)
+    # How the camera stored brightness: "linear" (proportional to light) or "srgb" (the sRGB
+    # tone curve of most cameras' JPEG/PNG output). The soft method locates edges in linear light.
+    encoding: str = eqx.field(static=True, default="linear")
 
     def __check_init__(self) -> None:
         validate_rig_fields(self.wheel_radius_mm, self.confidence_rect, self.travel)
         _check_rim_hint(self.rim_radius_px, "rig")
+        _check_encoding(self.encoding, "rig")
 
 
 # A rim_radius_px hint is searched from (1 - t) to (1 + t) times itself: it need only be rough.
@@ -98,6 +102,19 @@ def rim_hint_range_px(rig: Rig) -> tuple[float, float] | None:
         return None
     r = float(rig.rim_radius_px)
     return (1.0 - RIM_HINT_TOLERANCE) * r, (1.0 + RIM_HINT_TOLERANCE) * r
+
+
+# The rig file's encoding values: how pixel values relate to light (docs/conventions.md §2).
+ENCODINGS = ("linear", "srgb")
+
+
+def _check_encoding(value: Any, source: str) -> None:
+    if value not in ENCODINGS:
+        raise RigError(
+            f'{source}: encoding must be "linear" or "srgb", got {value!r}; "srgb" for '
+            'camera footage stored with the sRGB tone curve, "linear" (the default) for '
+            "values proportional to light"
+        )
 
 
 def _check_rim_hint(value: Any, source: str) -> None:
@@ -253,16 +270,26 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     _check_segmentation(seg, source)
     hint = data.get("rim_radius_px")
     _check_rim_hint(hint, source)
+    encoding = data.get("encoding", "linear")
+    _check_encoding(encoding, source)
     return Rig(
         wheel_radius_mm=radius,
         confidence_rect=rect,
         travel=travel,
         segmentation=seg,
         rim_radius_px=None if hint is None else float(hint),
+        encoding=encoding,
     )
 
 
-RIG_KEYS = ("wheel_radius_mm", "confidence_rect", "travel", "rim_radius_px", "segmentation")
+RIG_KEYS = (
+    "wheel_radius_mm",
+    "confidence_rect",
+    "travel",
+    "rim_radius_px",
+    "encoding",
+    "segmentation",
+)
 
 
 def _check_keys(data: dict[str, Any], known: tuple[str, ...], source: str, table: str) -> None:
@@ -325,6 +352,7 @@ def rig_to_toml(rig: Rig, comment: str | None = None) -> str:
             if rig.rim_radius_px is not None
             else []
         ),
+        *([f'encoding = "{rig.encoding}"'] if rig.encoding != "linear" else []),
         "",
         "[segmentation]",
     ]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..rig import ENCODINGS
 from .cli_base import EXIT_OK, UsageError
 from .compile_cache import cache_dir, enable_compile_cache
 from .frames import FrameSelection
@@ -38,6 +39,13 @@ def _add_estimate(p: argparse.ArgumentParser) -> None:
         help="pixel rectangle that always shows the wheel face (overrides)",
     )
     p.add_argument("--travel", choices=("right", "left"), help="direction of travel (overrides)")
+    p.add_argument(
+        "--encoding",
+        choices=ENCODINGS,
+        help="how the frames store brightness (overrides the rig's encoding): srgb for camera "
+        "footage with the sRGB tone curve, linear for values proportional to light (the "
+        "default); the soft method locates edges in linear light",
+    )
     p.add_argument(
         "--method",
         choices=("soft", "classic"),
@@ -115,7 +123,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
     setup_compile_cache(args)
     select, smoothing = _long_run_options(args)
     rect = parse_rect(args.confidence_rect) if args.confidence_rect is not None else None
-    overrides = RigOverrides(args.wheel_radius_mm, rect, args.travel)
+    overrides = RigOverrides(args.wheel_radius_mm, rect, args.travel, args.encoding)
     inputs = open_recordings(args.paths, rig_path=args.rig, overrides=overrides)
     try:
         load_method(args.method)

@@ -26,6 +26,12 @@ def _add_synth(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=640, metavar="W", help="image width px (640)")
     p.add_argument("--height", type=int, default=480, metavar="H", help="image height px (480)")
     p.add_argument("--travel", choices=("right", "left"), default="right", help="travel (right)")
+    p.add_argument(
+        "--encoding",
+        choices=("linear", "srgb"),
+        default="linear",
+        help="store the frames linear in light (default) or with the sRGB tone curve of a camera",
+    )
 
 
 def _load_synth() -> ModuleType:
@@ -59,6 +65,7 @@ def _run_synth(args: argparse.Namespace) -> int:
             height=args.height,
             travel=args.travel,
             progress=True,
+            encoding=args.encoding,
         )
     except OSError as e:
         raise UsageError(f"cannot write {e.filename or args.out}: {e.strerror or e}") from e

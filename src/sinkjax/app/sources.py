@@ -46,6 +46,7 @@ class RigOverrides:
     wheel_radius_mm: float | None = None
     confidence_rect: tuple[int, int, int, int] | None = None
     travel: str | None = None
+    encoding: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         flags: dict[str, Any] = {}
@@ -55,6 +56,8 @@ class RigOverrides:
             flags["confidence_rect"] = list(self.confidence_rect)
         if self.travel is not None:
             flags["travel"] = self.travel
+        if self.encoding is not None:
+            flags["encoding"] = self.encoding
         return flags
 
 

@@ -76,10 +76,12 @@ def loss_rig(
     travel: str,
     wheel_radius_mm: float,
     shape: tuple[int, ...] | None = None,
+    encoding: str = "linear",
 ) -> LossRig:
     """:class:`LossRig` of a rig's confidence rectangle, travel and wheel radius, in the default
     float dtype. ``shape``: the frames' (N, H, W, 3), against which the rectangle is checked
-    (ValueError if it does not lie inside the images)."""
+    (ValueError if it does not lie inside the images). ``encoding``: the rig's ("srgb": the
+    outline is located in linear light, as ``sinkjax estimate`` does)."""
     if shape is not None:
         plain = tuple(int(v) if isinstance(v, np.integer) else v for v in rect)
         problem = rect_problem(plain, int(shape[-3]), int(shape[-2]))
@@ -90,6 +92,7 @@ def loss_rig(
         rect_px=jnp.asarray(rect, jnp.int32),
         travel_sign=jnp.asarray(travel_sign(travel), dt),
         wheel_radius_mm=jnp.asarray(wheel_radius_mm, dt),
+        srgb=jnp.asarray(1.0 if encoding == "srgb" else 0.0, dt),
     )
 
 
@@ -127,6 +130,7 @@ def loss_and_grad(
     wheel_radius_mm: float,
     use_augment: bool = False,
     config: AugmentConfig = DEFAULT_CONFIG,
+    encoding: str = "linear",
 ) -> LossAndGrad:
     """The calibration loss of a stack of labelled frames and its gradient (vmap of grad),
     frame by frame (:func:`~sinkjax.calibration.loss.frame_losses`). With ``use_augment`` each
@@ -137,7 +141,7 @@ def loss_and_grad(
     compilation cache is on (:func:`solve_failures_as_nan`). Raises
     ValueError if ``rect`` does not lie inside the frames.
     """
-    rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape)
+    rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape, encoding)
     with solve_failures_as_nan():  # no callback: the compiled loss can be cached on disk
         return _loss_and_grad(raw, images_u8, targets, key, rim, rig, use_augment, config)
 
@@ -151,10 +155,11 @@ def loss_value(
     rect: tuple[int, int, int, int],
     travel: str,
     wheel_radius_mm: float,
+    encoding: str = "linear",
 ) -> LossAndGrad:
     """:func:`loss_and_grad`'s loss and frames without the gradient (``grad`` is zeros): the
     forward pass alone (0.28 s against 0.45 s for 6 frames at 640x480), for scoring a grid."""
-    rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape)
+    rig = loss_rig(rect, travel, wheel_radius_mm, images_u8.shape, encoding)
     return _loss_value(raw, images_u8, targets, rim, rig)
 
 
@@ -167,7 +172,9 @@ def compile_in_background(
     arguments of the same shapes then finds it compiled (in memory). Only the time changes: a
     compile that fails here fails again, with its error, in the call."""
     raw, images_u8, targets, key, rim = args
-    arrays = loss_rig(rig["rect"], rig["travel"], rig["wheel_radius_mm"])  # type: ignore[arg-type]
+    arrays = loss_rig(
+        rig["rect"], rig["travel"], rig["wheel_radius_mm"], None, rig.get("encoding", "linear"),  # type: ignore[arg-type]
+    )  # fmt: skip
     variants = [(False, DEFAULT_CONFIG)] + ([(True, augment_config)] if augment_config else [])
 
     def work() -> None:

@@ -183,13 +183,17 @@ def frame_loss(
     travel: str | Float[Array, ""],
     wheel_radius_mm: float | Float[Array, ""],
     rim: RecordingRim | None = None,
+    srgb: bool | Float[Array, ""] = False,
 ) -> tuple[Float[Array, ""], FrameLoss]:
     """One frame's loss (sum over its measured cells plus the penalties) and what it saw.
     ``rim``: the recording's rim to measure with (as ``sinkjax estimate`` does); None: the
     frame's own. The rig's numbers may be Python values or arrays (``rect`` an int array of 4,
-    ``travel`` the sign +1.0 / -1.0), traced as in :func:`sinkjax.soft.estimator.measure`."""
+    ``travel`` the sign +1.0 / -1.0, ``srgb`` a 0/1 flag), traced as in
+    :func:`sinkjax.soft.estimator.measure`."""
     seg = from_raw(raw)
-    est = measure(image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim)
+    est = measure(
+        image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim, srgb=srgb
+    )
     # The mask measure() made (the default segmenter): the contrast term looks at the same one.
     mask = default_segmenter(seg)(image, rect)
     sign = travel_sign(travel) if isinstance(travel, str) else travel
@@ -204,13 +208,19 @@ def mask_frame_loss(
     travel: str | Float[Array, ""],
     wheel_radius_mm: float | Float[Array, ""],
     rim_range_px: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
+    srgb: bool | Float[Array, ""] = False,
 ) -> tuple[Float[Array, ""], FrameLoss]:
     """:func:`frame_loss` of any soft wheel mask (a learned segmenter's, say): the fit's error
     against ``target`` plus the penalties, differentiable w.r.t. ``mask``. ``travel`` may be a
-    traced sign (+1.0 / -1.0) and the rig's numbers arrays, as in
+    traced sign (+1.0 / -1.0) and the rig's numbers arrays (``srgb`` a 0/1 flag), as in
     :func:`sinkjax.soft.estimator.measure_from_mask`."""
     est = measure_from_mask(
-        image, mask, travel=travel, wheel_radius_mm=wheel_radius_mm, rim_range_px=rim_range_px
+        image,
+        mask,
+        travel=travel,
+        wheel_radius_mm=wheel_radius_mm,
+        rim_range_px=rim_range_px,
+        srgb=srgb,
     )
     sign = travel_sign(travel) if isinstance(travel, str) else travel
     return _estimate_loss(est, mask, target, sign, wheel_radius_mm)
@@ -262,6 +272,7 @@ class LossRig(eqx.Module):
     rect_px: Int[Array, " 4"]  # the confidence rectangle x, y, w, h
     travel_sign: Float[Array, ""]  # +1.0 travel right, -1.0 left
     wheel_radius_mm: Float[Array, ""]
+    srgb: Float[Array, ""]  # 1.0: the frames are sRGB-encoded (Rig.encoding), else 0.0
 
 
 def frame_losses(
@@ -290,7 +301,7 @@ def frame_losses(
     n_cells = jnp.maximum(jnp.sum(jnp.isfinite(targets)), 1).astype(dt)
     one = functools.partial(
         frame_loss, rect=rig.rect_px, travel=rig.travel_sign, wheel_radius_mm=rig.wheel_radius_mm,
-        rim=rim,
+        rim=rim, srgb=rig.srgb,
     )  # fmt: skip
     if with_grad:
         (losses, frames), grads = jax.vmap(

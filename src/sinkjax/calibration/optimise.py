@@ -250,7 +250,12 @@ def calibrate(
     t0 = time.perf_counter()
     held = labelled_rim(frames, rig, rim)
     images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
-    numbers = dict(rect=rig.confidence_rect, travel=rig.travel, wheel_radius_mm=rig.wheel_radius_mm)
+    numbers = dict(
+        rect=rig.confidence_rect,
+        travel=rig.travel,
+        wheel_radius_mm=rig.wheel_radius_mm,
+        encoding=rig.encoding,
+    )
     key = jax.random.key(seed)
 
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
@@ -355,13 +360,9 @@ def calibrate(
 
 
 def _with(rig: Rig, raw: Array) -> Rig:
-    """``rig`` with the thresholds of the raw vector ``raw``."""
-    return Rig(
-        wheel_radius_mm=rig.wheel_radius_mm,
-        confidence_rect=rig.confidence_rect,
-        travel=rig.travel,
-        segmentation=_python_floats(from_raw(raw)),
-    )
+    """``rig`` with the thresholds of the raw vector ``raw`` (every other field kept: the rim
+    hint, the encoding)."""
+    return dataclasses.replace(rig, segmentation=_python_floats(from_raw(raw)))
 
 
 def _own_rim(frames: LabelledFrames, rig: Rig) -> RecordingRim:

@@ -97,6 +97,7 @@ class FrameBatch(eqx.Module):
     travel_sign: Float[Array, " N"]
     wheel_radius_mm: Float[Array, " N"]
     rim_range_px: Float[Array, "N 2"]  # the rim radii searched, the rig's hint or the default
+    srgb: Float[Array, " N"]  # 1.0 where the rig's encoding is "srgb", else 0.0
     seg: SegmentationParams  # each leaf (N,): the rig's thresholds (imitation targets)
     masks: Float[Array, "N H W"]  # exact wheel masks where known, else 0
     has_mask: Bool[Array, " N"]
@@ -131,6 +132,7 @@ def frame_batches(recordings: Sequence[LabelledRecording]) -> list[FrameBatch]:
                 travel_sign=jnp.asarray([travel_sign(r.rig.travel) for r in recs], dtype),
                 wheel_radius_mm=jnp.asarray([r.rig.wheel_radius_mm for r in recs], dtype),
                 rim_range_px=jnp.asarray(ranges, dtype),
+                srgb=jnp.asarray([float(r.rig.encoding == "srgb") for r in recs], dtype),
                 seg=jax.tree_util.tree_map(lambda *v: jnp.asarray(np.stack(v), dtype), *segs),
                 masks=jnp.asarray(np.stack(masks), dtype),
                 has_mask=jnp.asarray([r.masks is not None for r in recs]),

@@ -69,6 +69,7 @@ def _frame(
         travel=batch.travel_sign,
         wheel_radius_mm=batch.wheel_radius_mm,
         rim_range_px=(batch.rim_range_px[0], batch.rim_range_px[1]),
+        srgb=batch.srgb,
     )
     pixel = jnp.where(batch.has_mask, pixel_weight * _bce(mask, batch.masks), 0.0)
     # The labels say where the soil line is inside the fitted rim: a dense signal on the mask

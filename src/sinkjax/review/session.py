@@ -313,7 +313,8 @@ def rim_guess(image: np.ndarray, rig: Rig) -> tuple[float, float, float] | None:
     from ..soft.settings import SoftSettings
 
     cx, cy, r, support = (
-        float(v) for v in _rim_guess(image, rig.segmentation, rig.confidence_rect)
+        float(v)
+        for v in _rim_guess(image, rig.segmentation, rig.confidence_rect, rig.encoding == "srgb")
     )
     min_support = float(SoftSettings().min_rim_support)
     if not (support >= min_support and all(map(math.isfinite, (cx, cy, r)))):
@@ -326,6 +327,7 @@ def _rim_guess_fn() -> Callable[..., Any]:
     import jax
     import jax.numpy as jnp
 
+    from ..soft.colour import linear_light
     from ..soft.hough import hough_rim
     from ..soft.outline import extract_outline, refine_outline
     from ..soft.segmentation import wheel_mask
@@ -333,16 +335,20 @@ def _rim_guess_fn() -> Callable[..., Any]:
     from ..xla import jit
 
     @jit(static_argnames=("rect",))
-    def guess(image_u8, seg, rect):
+    def guess(image_u8, seg, rect, srgb):
         image = image_u8.astype(jax.dtypes.canonicalize_dtype(jnp.float64)) / 255.0
         settings = SoftSettings().astype(image.dtype)
         mask = wheel_mask(image, seg, rect)
-        outline = refine_outline(image, extract_outline(mask, settings), settings)
+        edges = linear_light(image, srgb)
+        outline = refine_outline(edges, extract_outline(mask, settings), settings)
         c = hough_rim(outline, image.shape[0], image.shape[1], settings)
         return jnp.stack([c.cx_px, c.cy_px, c.r_px, c.support])
 
     return guess
 
 
-def _rim_guess(image: np.ndarray, seg: Any, rect: tuple[int, int, int, int]) -> Any:
-    return _rim_guess_fn()(image, seg, rect=tuple(rect))
+def _rim_guess(
+    image: np.ndarray, seg: Any, rect: tuple[int, int, int, int], srgb: bool = False
+) -> Any:
+    # A float flag (as the rig's arrays carry it): one compiled guess for both encodings.
+    return _rim_guess_fn()(image, seg, rect=tuple(rect), srgb=1.0 if srgb else 0.0)

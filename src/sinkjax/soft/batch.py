@@ -52,7 +52,7 @@ def _prepare_u8(
     image = _float(image_u8)
     mask = segmenter.with_rim(image, rig.rect_px, rim.disc())
     features = segmenter.features(image, rig.rect_px)
-    return prepare(image, mask, rim, None, rig.rim_range_px, features)
+    return prepare(image, mask, rim, None, rig.rim_range_px, features, rig.srgb)
 
 
 def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstimate:
@@ -62,6 +62,7 @@ def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstim
         travel=rig.travel_sign,
         wheel_radius_mm=rig.wheel_radius_mm,
         uncertainty=rig.uncertainty,
+        srgb=rig.srgb,
     )
 
 

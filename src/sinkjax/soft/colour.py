@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 _EPS = 1e-12
 
@@ -68,3 +69,26 @@ def chromaticity(rgb: Float[Array, "*hw 3"]) -> Float[Array, "*hw 2"]:
     dark = total <= _EPS
     inv = jnp.where(dark, 0.0, 1.0 / jnp.where(dark, 1.0, total))
     return jnp.stack([(2.0 * r - g - b) * inv, jnp.sqrt(3.0) * (g - b) * inv], axis=-1)
+
+
+# The sRGB transfer function (IEC 61966-2-1): encoded values up to this knee are linear in light.
+_SRGB_KNEE = 0.04045
+
+
+def srgb_to_linear(rgb: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
+    """sRGB-encoded values in [0, 1] (any shape) as linear light (IEC 61966-2-1): ``v / 12.92``
+    up to the knee at 0.04045, ``((v + 0.055) / 1.055) ** 2.4`` above it. Finite gradients
+    everywhere (the power is taken above the knee only)."""
+    x = jnp.clip(rgb, 0.0, 1.0)
+    high = x > _SRGB_KNEE
+    return jnp.where(high, ((jnp.where(high, x, 1.0) + 0.055) / 1.055) ** 2.4, x / 12.92)
+
+
+def linear_light(
+    image: Float[Array, "H W 3"], srgb: bool | Bool[Array, ""] | Float[Array, ""]
+) -> Array:
+    """``image`` in linear light: :func:`srgb_to_linear` of it where ``srgb`` is true (a bool or
+    a traced 0/1 flag: one compiled function serves both), else ``image`` itself."""
+    flag = jnp.asarray(srgb)
+    on = flag if flag.dtype == jnp.bool_ else flag > 0.5
+    return jax.lax.cond(on, srgb_to_linear, lambda x: x, image)

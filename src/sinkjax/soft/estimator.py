@@ -20,6 +20,7 @@ from ..rig import Rig, SegmentationParams, rim_hint_range_px
 from ..status import Status
 from .adaptive import default_segmenter
 from .checks import line_shift_std, plausibility
+from .colour import linear_light
 from .fit import build_evidence, fit, rim_and_boundary_capacity
 from .hough import Circle, hough_rim
 from .model import end_point, measurements
@@ -92,10 +93,12 @@ def prepare(
     settings: SoftSettings | None = None,
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
     features: ArrayLike = FEATURES_UNKNOWN,
+    srgb: bool | Float[Array, ""] = False,
 ) -> Prepared:
     """Outline of the mask, and the rim circle to measure with (``soft.rim.choose_circle``).
     ``features``: the code of the features that made ``mask`` (``Segmenter.features``; may be
-    traced), kept for the estimate; by default unknown."""
+    traced), kept for the estimate; by default unknown. ``srgb``: the image is sRGB-encoded
+    (may be traced); its outline is then located in linear light (:func:`linear_light`)."""
     if image.ndim != 3 or image.shape[-1] != 3 or mask.shape != image.shape[:2]:
         raise ValueError(
             f"need image (H, W, 3) and mask (H, W) of the same H, W; got image {image.shape} "
@@ -103,7 +106,7 @@ def prepare(
         )
     height, width = mask.shape
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
-    outline = refine_outline(image, extract_outline(mask, s), s)
+    outline = refine_outline(linear_light(image, srgb), extract_outline(mask, s), s)
 
     def own_rim() -> Circle:
         # The starting circle is a discrete choice: no gradient flows through it.
@@ -133,8 +136,10 @@ def finish(
     wheel_radius_mm: float | Float[Array, ""] = 1.0,
     uncertainty: UncertaintyModel | None = None,
     settings: SoftSettings | None = None,
+    srgb: bool | Float[Array, ""] = False,
 ) -> SoftEstimate:
-    """The second half of the method: the joint fit, its uncertainty and the checks."""
+    """The second half of the method: the joint fit, its uncertainty and the checks.
+    ``srgb``: as for :func:`prepare` (an outline taken again is located in linear light)."""
     mask, outline, choice = prepared.mask, prepared.outline, prepared.choice
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
     sign = travel_sign(travel) if isinstance(travel, str) else travel
@@ -157,7 +162,7 @@ def finish(
     moved = moved | cut
     outline = jax.lax.cond(
         moved,
-        lambda: refine_outline(image, extract_outline(mask, s), s),
+        lambda: refine_outline(linear_light(image, srgb), extract_outline(mask, s), s),
         lambda: outline,
     )
     ev = build_evidence(outline, choice.circle, sign, s, rim_weight=choice.prior_weight)
@@ -253,6 +258,7 @@ def measure(
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
     rim: RecordingRim | None = None,
     segmenter: Segmenter | None = None,
+    srgb: bool | Float[Array, ""] = False,
 ) -> SoftEstimate:
     """The soft method on one image in [0, 1].
 
@@ -272,7 +278,10 @@ def measure(
     :class:`~sinkjax.soft.segmenter.Segmenter`) makes the mask; None: the default with the
     thresholds ``seg`` (:func:`~sinkjax.soft.adaptive.default_segmenter`: the paper's H/S test
     on a coloured wheel, intensity/chroma/texture on a black one); which features it chose is
-    the estimate's ``features``.
+    the estimate's ``features``. ``srgb`` (a bool or a traced 0/1 flag): the image's values are
+    sRGB-encoded, as most cameras store them (the rig's ``encoding = "srgb"``); the outline's
+    sub-pixel edges are then located in linear light, where a blurred edge mixes its two sides
+    linearly (``experiments/encoding.py``). The segmentation sees the image as given.
     Never raises for image content: problems are reported in ``status``.
     """
     segmenter = default_segmenter(seg) if segmenter is None else segmenter
@@ -289,6 +298,7 @@ def measure(
         rim_range_px=rim_range_px,
         rim=rim,
         features=segmenter.features(image, rect),
+        srgb=srgb,
     )
 
 
@@ -303,6 +313,7 @@ def measure_from_mask(
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
     rim: RecordingRim | None = None,
     features: ArrayLike = FEATURES_UNKNOWN,
+    srgb: bool | Float[Array, ""] = False,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
@@ -312,7 +323,7 @@ def measure_from_mask(
     (the estimate's ``features``): the ``FEATURES_*`` code of what made the mask, if known.
     Raises ValueError if the shapes disagree.
     """
-    prepared = prepare(image, mask, rim, settings, rim_range_px, features)
+    prepared = prepare(image, mask, rim, settings, rim_range_px, features, srgb)
     return finish(
         image,
         prepared,
@@ -320,6 +331,7 @@ def measure_from_mask(
         wheel_radius_mm=wheel_radius_mm,
         uncertainty=uncertainty,
         settings=settings,
+        srgb=srgb,
     )
 
 
@@ -334,6 +346,7 @@ class RigArrays(eqx.Module):
     # The rig's rim_radius_px hint as the radii to search; None: the image size's default range
     # (hinted and unhinted rigs are two compiled functions per size, each serving all rigs).
     rim_range_px: tuple[Float[Array, ""], Float[Array, ""]] | None
+    srgb: Float[Array, ""]  # 1.0: the frames are sRGB-encoded (rig encoding "srgb"), else 0.0
 
 
 def rig_arrays(rig: Rig, uncertainty: UncertaintyModel | None = None) -> RigArrays:
@@ -350,4 +363,5 @@ def rig_arrays(rig: Rig, uncertainty: UncertaintyModel | None = None) -> RigArra
         rim_range_px=None
         if hint is None
         else (jnp.asarray(hint[0], dtype), jnp.asarray(hint[1], dtype)),
+        srgb=jnp.asarray(1.0 if rig.encoding == "srgb" else 0.0, dtype),
     )

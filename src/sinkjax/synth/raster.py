@@ -160,6 +160,13 @@ def _compose(scene: Scene, rng: np.random.Generator) -> NDArray[np.float32]:
     return img * (scene.gain * np.asarray(scene.cast_rgb, np.float32))
 
 
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear light in [0, 1] as sRGB-encoded values (IEC 61966-2-1), clipped to [0, 1]."""
+    x = np.clip(linear, 0.0, 1.0)
+    high = 1.055 * np.power(x, np.float32(1 / 2.4)) - 0.055
+    return np.where(x <= 0.0031308, 12.92 * x, high).astype(np.float32)
+
+
 def render_and_encode(
     scene: Scene, seed: int, *, encode: bool
 ) -> tuple[UInt8[np.ndarray, "H W 3"], Truth, bytes | None]:
@@ -173,6 +180,8 @@ def render_and_encode(
         img = np.asarray(cv2.GaussianBlur(img, (0, 0), scene.blur_sigma_px), np.float32)
     if scene.noise_std > 0:
         img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(scene.noise_std)
+    if scene.encoding == "srgb":
+        img = np.float32(255) * srgb_encode(img / np.float32(255))
     # Round half up: +0.5 then truncate (one pass fewer than rint, same result after clipping).
     img += np.float32(0.5)
     out = np.clip(img, 0, 255, out=img).astype(np.uint8)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import pathlib
 
@@ -68,6 +69,7 @@ def rig_for(scene: Scene) -> Rig:
         wheel_radius_mm=float(scene.wheel_radius_mm),
         confidence_rect=(max(0, x0), max(0, y0), w, h),
         travel=scene.travel,
+        encoding=scene.encoding,
     )
 
 
@@ -90,6 +92,7 @@ def write_recording(
     height: int = 480,
     travel: str = "right",
     progress: bool = True,
+    encoding: str = "linear",
 ) -> pathlib.Path:
     """Write a synthetic recording: frames, ``rig.toml`` and ``truth.csv``; returns the folder.
 
@@ -105,6 +108,8 @@ def write_recording(
     scenes = recording_scenes(
         rng, n_frames, preset=preset, width=width, height=height, travel=travel
     )
+    # The same scenes, stored with the camera's tone curve (the rig says so: rig_for).
+    scenes = [dataclasses.replace(s, encoding=encoding) for s in scenes]
     if scenes:
         save_rig(
             rig_for(scenes[0]),

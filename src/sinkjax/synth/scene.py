@@ -92,6 +92,9 @@ class Scene:
     noise_std: float = 0.0  # 8-bit units
     blur_sigma_px: float = 0.0
     jpeg_quality: int = 0  # 0: lossless (PNG)
+    # How pixel values store light: "linear" (proportional to it) or "srgb" (the sRGB tone curve
+    # applied after blur and noise, as a camera does; the rig then says encoding = "srgb").
+    encoding: str = "linear"
     supersample: int = 8  # supersample x supersample samples in pixels within 1 px of an edge
 
     def __post_init__(self) -> None:
@@ -105,6 +108,8 @@ class Scene:
             )
         if self.supersample < 1:
             raise ValueError(f"Scene.supersample must be >= 1, got {self.supersample}")
+        if self.encoding not in ("linear", "srgb"):
+            raise ValueError(f'Scene.encoding must be "linear" or "srgb", got {self.encoding!r}')
         if not 0 <= self.jpeg_quality <= 100:
             raise ValueError(f"Scene.jpeg_quality must be 0 (PNG) to 100, got {self.jpeg_quality}")
         if self.n_lugs and not 0 < self.lug_width_px < math.pi * self.radius_px / self.n_lugs:
