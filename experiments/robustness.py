@@ -240,7 +240,10 @@ def main() -> None:
         }
         for m in methods
     }
+    # Another seed than the reported one gets its own files (robustness_seed<S>.*).
     name = "robustness_quick" if a.quick else "robustness"
+    if not a.quick and a.seed != EVAL_SEED:
+        name = f"robustness_seed{a.seed}"
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / f"{name}.json").write_text(
         json.dumps({"config": cfg, "summary": summary, "frames": rows}, indent=1, default=str)
