@@ -108,6 +108,11 @@ def rim_hint_range_px(rig: Rig) -> tuple[float, float] | None:
 ENCODINGS = ("linear", "srgb")
 
 
+def srgb_flag(encoding: str) -> float:
+    """The encoding as the compiled functions take it: 1.0 for "srgb", 0.0 for "linear"."""
+    return 1.0 if encoding == "srgb" else 0.0
+
+
 def _check_encoding(value: Any, source: str) -> None:
     if value not in ENCODINGS:
         raise RigError(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from types import ModuleType
 
+from ..rig import ENCODINGS
 from .cli_base import EXIT_OK, UsageError
 from .cli_estimate import (
     _add_smoothing_options,
@@ -28,7 +29,7 @@ def _add_synth(p: argparse.ArgumentParser) -> None:
     p.add_argument("--travel", choices=("right", "left"), default="right", help="travel (right)")
     p.add_argument(
         "--encoding",
-        choices=("linear", "srgb"),
+        choices=ENCODINGS,
         default="linear",
         help="store the frames linear in light (default) or with the sRGB tone curve of a camera",
     )

@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
-from ..rig import rect_problem
+from ..rig import rect_problem, srgb_flag
 from ..soft.rim import RecordingRim
 from ..xla import jit
 from .augment import DEFAULT_CONFIG, AugmentConfig
@@ -92,7 +92,7 @@ def loss_rig(
         rect_px=jnp.asarray(rect, jnp.int32),
         travel_sign=jnp.asarray(travel_sign(travel), dt),
         wheel_radius_mm=jnp.asarray(wheel_radius_mm, dt),
-        srgb=jnp.asarray(1.0 if encoding == "srgb" else 0.0, dt),
+        srgb=jnp.asarray(srgb_flag(encoding), dt),
     )
 
 

@@ -21,7 +21,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from ..calibration.labels import LabelError, LabelledFrames, read_labels
 from ..geometry import travel_sign
-from ..rig import Rig, SegmentationParams, load_rig, rim_hint_range_px
+from ..rig import Rig, SegmentationParams, load_rig, rim_hint_range_px, srgb_flag
 from ..soft.hough import radius_range_px
 
 
@@ -132,7 +132,7 @@ def frame_batches(recordings: Sequence[LabelledRecording]) -> list[FrameBatch]:
                 travel_sign=jnp.asarray([travel_sign(r.rig.travel) for r in recs], dtype),
                 wheel_radius_mm=jnp.asarray([r.rig.wheel_radius_mm for r in recs], dtype),
                 rim_range_px=jnp.asarray(ranges, dtype),
-                srgb=jnp.asarray([float(r.rig.encoding == "srgb") for r in recs], dtype),
+                srgb=jnp.asarray([srgb_flag(r.rig.encoding) for r in recs], dtype),
                 seg=jax.tree_util.tree_map(lambda *v: jnp.asarray(np.stack(v), dtype), *segs),
                 masks=jnp.asarray(np.stack(masks), dtype),
                 has_mask=jnp.asarray([r.masks is not None for r in recs]),

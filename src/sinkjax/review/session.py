@@ -28,7 +28,7 @@ from ..app.results import COLUMNS
 from ..app.sources import InputError, assign_rigs, expand_paths
 from ..geometry import from_wheel_frame
 from ..result import FrameResult
-from ..rig import Rig
+from ..rig import Rig, srgb_flag
 from ..status import Status
 from .labels import LabelStore, rim_chord
 from .suspicion import suspicion
@@ -314,7 +314,7 @@ def rim_guess(image: np.ndarray, rig: Rig) -> tuple[float, float, float] | None:
 
     cx, cy, r, support = (
         float(v)
-        for v in _rim_guess(image, rig.segmentation, rig.confidence_rect, rig.encoding == "srgb")
+        for v in _rim_guess(image, rig.segmentation, rig.confidence_rect, srgb_flag(rig.encoding))
     )
     min_support = float(SoftSettings().min_rim_support)
     if not (support >= min_support and all(map(math.isfinite, (cx, cy, r)))):
@@ -348,7 +348,7 @@ def _rim_guess_fn() -> Callable[..., Any]:
 
 
 def _rim_guess(
-    image: np.ndarray, seg: Any, rect: tuple[int, int, int, int], srgb: bool = False
+    image: np.ndarray, seg: Any, rect: tuple[int, int, int, int], srgb: float = 0.0
 ) -> Any:
-    # A float flag (as the rig's arrays carry it): one compiled guess for both encodings.
-    return _rim_guess_fn()(image, seg, rect=tuple(rect), srgb=1.0 if srgb else 0.0)
+    # A traced float flag (rig.srgb_flag): one compiled guess for both encodings.
+    return _rim_guess_fn()(image, seg, rect=tuple(rect), srgb=srgb)

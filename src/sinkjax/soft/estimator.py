@@ -16,7 +16,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import travel_sign
 from ..result import FEATURES_UNKNOWN
-from ..rig import Rig, SegmentationParams, rim_hint_range_px
+from ..rig import Rig, SegmentationParams, rim_hint_range_px, srgb_flag
 from ..status import Status
 from .adaptive import default_segmenter
 from .checks import line_shift_std, plausibility
@@ -363,5 +363,5 @@ def rig_arrays(rig: Rig, uncertainty: UncertaintyModel | None = None) -> RigArra
         rim_range_px=None
         if hint is None
         else (jnp.asarray(hint[0], dtype), jnp.asarray(hint[1], dtype)),
-        srgb=jnp.asarray(1.0 if rig.encoding == "srgb" else 0.0, dtype),
+        srgb=jnp.asarray(srgb_flag(rig.encoding), dtype),
     )

@@ -17,6 +17,7 @@ from jaxtyping import Float
 from numpy.typing import NDArray
 
 from ..geometry import travel_sign
+from ..rig import ENCODINGS
 
 F64 = NDArray[np.float64]  # the analytic geometry (surface, boundary, edges) is float64
 
@@ -108,7 +109,7 @@ class Scene:
             )
         if self.supersample < 1:
             raise ValueError(f"Scene.supersample must be >= 1, got {self.supersample}")
-        if self.encoding not in ("linear", "srgb"):
+        if self.encoding not in ENCODINGS:
             raise ValueError(f'Scene.encoding must be "linear" or "srgb", got {self.encoding!r}')
         if not 0 <= self.jpeg_quality <= 100:
             raise ValueError(f"Scene.jpeg_quality must be 0 (PNG) to 100, got {self.jpeg_quality}")
