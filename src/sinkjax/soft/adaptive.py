@@ -42,8 +42,9 @@ circle) soil. Else, for a lit soil nearly as bright as the wheel's shaded side (
 threshold goes to the valley between the soil below the rim and the wheel, in the histogram of
 both (searched from the soil's median up to I_w), inside the rim and beyond it (no lower than
 the frame's own there), where that calls the soil below soil; else the frame's own threshold
-stays. A black wheel's threshold already lies between it and anything brighter, sky or soil, and
-does not change.
+stays. A black wheel's threshold below the rim's centre comes from its shading-corrected face
+(:mod:`~sinkjax.soft.dark_face`): the wheel's cast shadow on the soil can be as dark as its lit
+side, but not as dark as the face just above it where they meet.
 
 The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
@@ -59,6 +60,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..rig import CLIP_LEVEL, MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
+from .dark_face import corrected_edge
 from .histogram import deepest_valley, log_histogram, log_quantile, valley, valley_depth
 from .segmentation import HueSat, Rect, colour_box, colour_weight, smooth, wheel_mask
 from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, rect_weight
@@ -271,8 +273,7 @@ class AdaptiveSegmenter(Segmenter):
         # the wheel; that threshold holds beyond the rim too (the same soil), where the frame's
         # own is not higher (a background brighter than the soil). Used where it calls the soil
         # below soil; else, or with no soil below the rim in the frame to ask, the frame's own
-        # threshold stays. (A black wheel keeps it: its threshold already lies between it and
-        # anything brighter, sky or soil.)
+        # threshold stays. (A black wheel: dark_rule below.)
         cx, cy, rho = disc
 
         def inside_rule() -> Array:
@@ -302,8 +303,22 @@ class AdaptiveSegmenter(Segmenter):
             out = jnp.where(inside & use_in, mask_in, mask)
             return jnp.where(~use_in & parted & use_soil, mask_soil, out)
 
-        # Skipped (not computed) for a black wheel and where no rim is known (radius 0).
-        return jax.lax.cond(dark | (rho <= 0.0), lambda: mask, inside_rule)
+        def dark_rule() -> Array:
+            # A black wheel: its threshold from its shading-corrected face (soft.dark_face),
+            # which parts it from a cast shadow the frame's threshold runs through.
+            corr, face, apply = corrected_edge(intensity, mask, edge, disc)
+            low = jnp.where(apply, jnp.minimum(edge, self.p_valley * corr), edge)
+            gap = jnp.maximum(low - face, 1e-3)
+            width = self.t_int * gap / jnp.maximum(self.p_a_int - 1.0, 0.05)
+            lower = jax.nn.sigmoid((low - intensity) / width) * m_chroma * m_tex
+            return jnp.where(apply, lower, mask)
+
+        # Skipped (not computed) where no rim is known (radius 0).
+        return jax.lax.cond(
+            rho <= 0.0,
+            lambda: mask,
+            lambda: jax.lax.cond(dark, dark_rule, inside_rule),
+        )
 
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         return self._mask(image, rect, None)
@@ -313,7 +328,7 @@ class AdaptiveSegmenter(Segmenter):
 
     def with_rim(self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc) -> Float[Array, "H W"]:
         # A coloured wheel's H/S mask does not change; a grey one's intensity threshold inside
-        # the rim comes from the inside alone (grey_mask).
+        # the rim comes from the inside alone, or a black one's from its face (grey_mask).
         return self._mask(image, rect, disc)
 
     def _mask(self, image: Float[Array, "H W 3"], rect: Rect, disc: Disc | None) -> Array:

@@ -44,6 +44,8 @@ weighs the model against its own inputs, with no threshold taken from the render
   away beyond the rim). When at both ends it looks like what is above (the background) at
   both depths, the "boundary" is an edge on the wheel itself (soil-coloured dust on its lower
   part, a shadow line).
+- **the soil's step stays inside the rim** (a wheel without colour): a step ``soft.soil_step`` finds
+  at the rim's edge below the mask's soil (no contact) is the far edge of a dark cast shadow.
 
 - **where the soil line could be** (a sigma, not a test): dust that fades the wheel towards the
   soil's colour, or noise, leaves the mask neither wheel nor soil over a band around the line,
@@ -113,6 +115,7 @@ TESTS: tuple[str, ...] = (
     "the wheel-soil boundary stops short of the rim (A or B would be extrapolated)",
     "the wheel-soil boundary does not span the chord its sinkage implies",
     "the soil surface does not continue beyond the rim at the boundary's ends",
+    "the soil's step lies at the rim where the mask saw soil inside it (a cast shadow's edge)",
     "the wheel mask reaches into the soil beyond the rim (a shadow or the soil taken for wheel)",
 )
 MAX_RING_DISAGREEMENT = 0.1
@@ -164,11 +167,9 @@ def ring_disagreement(
     mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, contact: Array
 ) -> Array:
     """Mean disagreement, in [0, 1], of the mask with the fitted model on the lower half of a
-    ring just inside the rim: 1 - mask above the equivalent line (all of it without
-    ``contact``), the mask below it. Only the half below O, where the boundary and its ends
-    are: a lamp's glow or a specular on the upper face that the mask leaves out moves no number
-    (the circle is the recording's, or the frame's own fitted with a redescending loss).
-    Differentiable w.r.t. ``mask``; the check fails above ``MAX_HALF_RING_DISAGREEMENT``."""
+    ring just inside the rim (module docstring): 1 - mask above the equivalent line (all of it
+    without ``contact``), the mask below it. Differentiable w.r.t. ``mask``; the check fails
+    above ``MAX_HALF_RING_DISAGREEMENT``."""
     r = p[2]
     rho = r - jnp.maximum(RING_INSET_PX, RING_INSET * r)
     phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=mask.dtype)  # y down: lower half
@@ -256,10 +257,8 @@ def _line_shift(
 def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
     # Mean colour of a 5 x 5 px neighbourhood (sampled every 2 px): texture averages out.
     o = jnp.asarray([-2.0, 0.0, 2.0], image.dtype)
-    xs, ys = (
-        jnp.broadcast_to(x + o[:, None], (3, 3)).ravel(),
-        jnp.broadcast_to(y + o[None, :], (3, 3)).ravel(),
-    )
+    xs, ys = jnp.broadcast_to(x + o[:, None], (3, 3)), jnp.broadcast_to(y + o[None, :], (3, 3))
+    xs, ys = xs.ravel(), ys.ravel()
     return jnp.stack([jnp.mean(_bilinear(image[..., c], xs, ys)) for c in range(3)])
 
 
@@ -306,8 +305,10 @@ def plausibility(
     p: Float[Array, " P"],
     ev: Evidence,
     contact: Array,
+    stepped_out: Array | bool = False,
 ) -> Plausibility:
-    """The plausibility tests for the fitted ``p`` of one frame (see the module docstring)."""
+    """The plausibility tests for the fitted ``p`` of one frame (see the module docstring).
+    ``stepped_out``: the soil's step moved the mask's soil line down out of the rim."""
     dt = p.dtype
     n = ev.x_px.shape[0]
     res = residuals(p, ev)
@@ -339,10 +340,8 @@ def plausibility(
     span = u[i_a] - u[i_b]
     chord_ratio = span / chord
     chord_wrong = (chord_ratio < CHORD_RATIO_RANGE[0]) | (span / chord_full > CHORD_RATIO_RANGE[1])
-    # A shallow chord (soft.shallow) passed the same test against its own depth when it was
-    # found (its points fill the chord). The chord the fitted z0 implies inside the margin,
-    # 2 sqrt(2 r (z0 - margin)), halves or doubles when a sub-pixel z0 moves by its sigma, so the
-    # test is not repeated on it.
+    # A shallow chord (soft.shallow) passed this test against its own depth when found; the
+    # chord 2 sqrt(2 r (z0 - margin)) halves or doubles as a sub-pixel z0 moves by its sigma.
     chord_wrong = chord_wrong & ~(ev.shallow_chord > 0)
 
     ring = ring_disagreement(mask, p, ev.sign, contact)
@@ -356,6 +355,7 @@ def plausibility(
             contact & (gap > clearance + jnp.maximum(3.0, END_GAP_FRACTION * p[2])),
             contact & chord_wrong,
             contact & _soil_beyond(image, p, ev.sign),
+            jnp.asarray(stepped_out),
             outer > MAX_OUTER_WHEEL,
         ]
     )

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import travel_sign
-from ..result import FEATURES_UNKNOWN
+from ..result import FEATURES_INTENSITY, FEATURES_UNKNOWN
 from ..rig import Rig, SegmentationParams, rim_hint_range_px, srgb_flag
 from ..status import Status
 from .adaptive import default_segmenter
@@ -153,6 +153,7 @@ def finish(
     )
     # A mask that runs on from the face into the wheel's shadow on the soil is cut at the
     # shadow's top, the soil line (soft.shadow_cut; the cheap ring test first).
+    stepped = moved
     disc = (c.cx_px, c.cy_px, c.r_px)
     mask, cut = jax.lax.cond(
         (choice.prior_weight > 0) & ~moved & spills(mask, disc),
@@ -173,7 +174,10 @@ def finish(
     # A shallow chord's edge is faint (the soil covers a sliver of a pixel or two), so its points
     # weigh little: it is a contact by its points' number and fill (soft.shallow), not weight.
     contact = (jnp.sum(ev.w_line) >= s.min_boundary_points) | (ev.shallow_chord > 0)
-    check = plausibility(image, mask, p, ev, contact)
+    # A wheel without colour: the soil's step found no soil inside the rim where the mask did
+    # (soft.checks: the far edge of its cast shadow, as dark as its dusted face).
+    stepped_out = stepped & ~contact & (prepared.features == FEATURES_INTENSITY)
+    check = plausibility(image, mask, p, ev, contact, stepped_out)
     std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
     std = jnp.sqrt(std**2 + line_shift_std(p, check, wheel_radius_mm) ** 2)
     measured = jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code)
