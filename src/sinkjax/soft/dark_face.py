@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .histogram import _VALLEY_DEPTH, _VALLEY_MIN_SHARE
+from .histogram import _VALLEY_DEPTH, _VALLEY_MIN_SHARE, binned_histogram
 
 TRIM = 2.5  # residuals beyond this many RMS are not the face (holes, hub, a sheen)
 KEEP = 0.9  # the corrected threshold keeps at least this share of the upper half's wheel
@@ -88,17 +88,8 @@ def corrected_histogram(
     """The histogram of log corrected intensity over 0/1 ``weight`` (``_C_BINS`` bins from
     ``_LOG_C_LO`` to ``_LOG_C_HI``; outside that range not counted), smoothed over three bins,
     and the bins' centres."""
-    scale = _C_BINS / (_LOG_C_HI - _LOG_C_LO)
-    idx = jnp.floor((log_c - _LOG_C_LO) * scale).astype(jnp.int32).ravel()
-    keep = (weight.ravel() > 0) & (idx >= 0) & (idx < _C_BINS)
-    counts = (
-        jnp.zeros(_C_BINS, log_c.dtype)
-        .at[jnp.where(keep, idx, _C_BINS)]
-        .add(jnp.where(keep, 1.0, 0.0).astype(log_c.dtype), mode="drop")
-    )
-    kernel = jnp.asarray([1.0, 2.0, 1.0], log_c.dtype) / 4.0
-    centres = _LOG_C_LO + (jnp.arange(_C_BINS, dtype=log_c.dtype) + 0.5) / scale
-    return jnp.convolve(counts, kernel, mode="same"), centres
+    span = (_LOG_C_LO, _LOG_C_HI, _C_BINS)
+    return binned_histogram(log_c, weight, span, (1, 2, 1), clip=False)
 
 
 def face_valley(

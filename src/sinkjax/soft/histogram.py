@@ -29,6 +29,39 @@ _VALLEY_DEPTH = 0.25
 _VALLEY_MIN_SHARE = 2e-4
 
 
+def binned_histogram(
+    values: Float[Array, "H W"],
+    weight: Float[Array, "H W"],
+    span: tuple[float, float, int],
+    kernel: tuple[int, ...],
+    clip: bool,
+) -> tuple[Float[Array, " B"], Float[Array, " B"]]:
+    """The histogram of ``values`` over ``span`` = (lo, hi, bins), each pixel counted with its
+    ``weight`` (0: left out), smoothed by ``kernel`` (integer weights, normalised here), and the
+    bins' centres. ``clip``: values outside the span count in the end bins, else not at all."""
+    lo, hi, bins = span
+    scale = bins / (hi - lo)
+    idx = jnp.floor((values - lo) * scale).astype(jnp.int32)
+    keep = weight.ravel() > 0
+    if clip:
+        idx = jnp.clip(idx, 0, bins - 1)
+    else:
+        keep = keep & (idx.ravel() >= 0) & (idx.ravel() < bins)
+    copy = jnp.arange(idx.size, dtype=jnp.int32) % _COPIES
+    # A pixel left out adds nothing: its index lies past the end and is dropped.
+    slot = jnp.where(keep, copy * bins + idx.ravel(), _COPIES * bins)
+    counts = (
+        jnp.zeros(_COPIES * bins, values.dtype)
+        .at[slot]
+        .add(weight.ravel(), mode="drop")
+        .reshape(_COPIES, bins)
+        .sum(axis=0)
+    )
+    k = jnp.asarray(kernel, values.dtype) / sum(kernel)
+    centres = lo + (jnp.arange(bins, dtype=values.dtype) + 0.5) / scale
+    return jnp.convolve(counts, k, mode="same"), centres
+
+
 def log_histogram(
     intensity: Float[Array, "H W"], weight: Float[Array, "H W"] | None = None
 ) -> tuple[Float[Array, " B"], Float[Array, " B"]]:
@@ -36,22 +69,8 @@ def log_histogram(
     8-bit step to 1, smoothed over five bins; each pixel counted with its ``weight``, 1 by
     default) and the bins' centres (log intensity)."""
     log_i = jnp.log(jnp.clip(intensity[::2, ::2], 1.0 / 255.0, 1.0))
-    scale = _HIST_BINS / -_LOG_I_MIN
-    idx = jnp.clip(jnp.floor((log_i - _LOG_I_MIN) * scale).astype(jnp.int32), 0, _HIST_BINS - 1)
     w = jnp.ones_like(log_i) if weight is None else weight[::2, ::2]
-    copy = jnp.arange(idx.size, dtype=jnp.int32) % _COPIES
-    # A pixel of weight 0 adds nothing: it is left out (an index past the end is dropped).
-    slot = jnp.where(w.ravel() > 0, copy * _HIST_BINS + idx.ravel(), _COPIES * _HIST_BINS)
-    counts = (
-        jnp.zeros(_COPIES * _HIST_BINS, intensity.dtype)
-        .at[slot]
-        .add(w.ravel(), mode="drop")
-        .reshape(_COPIES, _HIST_BINS)
-        .sum(axis=0)
-    )
-    kernel = jnp.asarray([1.0, 2.0, 3.0, 2.0, 1.0], intensity.dtype) / 9.0
-    centres = _LOG_I_MIN + (jnp.arange(_HIST_BINS, dtype=intensity.dtype) + 0.5) / scale
-    return jnp.convolve(counts, kernel, mode="same"), centres
+    return binned_histogram(log_i, w, (_LOG_I_MIN, 0.0, _HIST_BINS), (1, 2, 3, 2, 1), clip=True)
 
 
 def valley(
