@@ -144,9 +144,10 @@ def corrected_edge(
     face_low = jnp.sum(lower * plane) / jnp.maximum(jnp.sum(lower), 1.0)
     top = jnp.log(jnp.maximum(jax.lax.stop_gradient(edge), 1e-6)) - face_low
     found, parted = face_valley(hist, centres, TRIM * rms, top)
-    corr = found * jnp.exp(plane)
+    face = jnp.exp(plane)
+    corr = found * face
     edge_map = jnp.minimum(jax.lax.stop_gradient(edge), corr)
     upper_px = jnp.maximum(jnp.sum(upper.astype(intensity.dtype)), 1.0)
     kept = jnp.sum(jnp.where(upper, still < edge_map, False).astype(intensity.dtype)) / upper_px
     holds = parted & (used >= MIN_FACE_PX) & (kept >= KEEP)
-    return corr, jnp.exp(plane), jnp.broadcast_to(holds & (v > 0.0), intensity.shape)
+    return corr, face, jnp.broadcast_to(holds & (v > 0.0), intensity.shape)
