@@ -106,15 +106,25 @@ def test_black_wheel_mask_with_rim_against_rendered_truth() -> None:
     assert sorted(gains)[-3] > 0.15 and np.mean(gains) > 0.05
 
 
-def test_gradient_through_the_corrected_threshold_matches_finite_differences() -> None:
-    # hard_black seed 6: a cast shadow the corrected threshold parts from the face.
-    rng = np.random.default_rng(6)
-    sc = synth.recording_scenes(rng, 1, preset="hard_black", width=320, height=240)[0]
-    img, t = synth.render(sc, 6)
+@pytest.mark.parametrize(
+    ("preset", "seed", "leaves"),
+    [
+        # A cast shadow the corrected threshold parts from the face.
+        ("hard_black", 6, ("p_valley", "t_int")),
+        # Lit grey sand beyond a metal wheel's rim (tests/test_metal_rim.py).
+        ("metal_wheel", 16_000, ("p_tex_rim",)),
+    ],
+)
+def test_gradient_through_the_rim_rules_matches_finite_differences(
+    preset: str, seed: int, leaves: tuple[str, ...]
+) -> None:
+    rng = np.random.default_rng(seed)
+    sc = synth.recording_scenes(rng, 1, preset=preset, width=320, height=240)[0]
+    img, t = synth.render(sc, seed)
     x = jnp.asarray(img, jnp.float64) / 255.0
     rect = tuple(synth.rig_for(sc).confidence_rect)
     disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
-    for leaf in ("p_valley", "t_int"):
+    for leaf in leaves:
 
         def stat(v: jnp.ndarray, leaf: str = leaf) -> jnp.ndarray:
             return jnp.mean(AdaptiveSegmenter(**{leaf: v}).with_rim(x, rect, disc))

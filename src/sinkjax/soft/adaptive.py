@@ -34,17 +34,23 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
 With the recording's rim known (:meth:`AdaptiveSegmenter.with_rim`, which the soft method uses
 once a recording's rim is found), a metal wheel's intensity threshold inside the rim comes from
 the inside's own histogram: only wheel and soil can be there, not the background, so the
-threshold goes to the deepest valley between the wheel (its shaded side included, however dark)
-and the soil or its shadow (:func:`~sinkjax.soft.histogram.deepest_valley`; none: all of the
-inside passes the intensity test and chroma and texture alone part wheel from soil). It is used
-only where that rule still calls the soil below the rim (the frame's bottom rows under the
-circle) soil. Else, for a lit soil nearly as bright as the wheel's shaded side (grey sand), the
-threshold goes to the valley between the soil below the rim and the wheel, in the histogram of
-both (searched from the soil's median up to I_w), inside the rim and beyond it (no lower than
-the frame's own there), where that calls the soil below soil; else the frame's own threshold
-stays. A black wheel's threshold below the rim's centre comes from its shading-corrected face
-(:mod:`~sinkjax.soft.dark_face`): the wheel's cast shadow on the soil can be as dark as its lit
-side, but not as dark as the face just above it where they meet.
+threshold goes to the valley just under the wheel's population (its shaded side included,
+however dark): the highest clear valley, with the face's whole population on its bright side,
+not a deeper one between its holes and the soil in its shadow
+(:func:`~sinkjax.soft.histogram.deepest_valley` with ``reach``; none: all of the inside passes
+the intensity test and chroma and texture alone part wheel from soil). It is used only where
+that rule still calls the soil below the rim (the frame's bottom rows under the circle) soil.
+Else, for a lit soil nearly as bright as the wheel's shaded side (grey sand), the threshold goes
+to the valley between the soil below the rim and the wheel, in the histogram of both (searched
+from the soil's median up to I_w, the face's whole population counted), inside the rim and
+beyond it (no lower than the frame's own there), where that calls the soil below soil; else the
+frame's own threshold stays. Beyond the rim below its centre, where only soil and lugs can be,
+the texture limit is at most ``p_tex_rim`` times the face's own 95th percentile (the upper half
+of the inside): lit grey sand as bright as the face, under the frame's texture limit, is still
+rougher than the face (the narrow lugs there, rough at both their edges, are lost too; they are
+not measured). A black wheel's threshold below the rim's centre comes from its
+shading-corrected face (:mod:`~sinkjax.soft.dark_face`): the wheel's cast shadow on the soil can
+be as dark as its lit side, but not as dark as the face just above it where they meet.
 
 The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
@@ -61,7 +67,14 @@ from jaxtyping import Array, Bool, Float, Int
 from ..rig import CLIP_LEVEL, MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .dark_face import corrected_edge
-from .histogram import deepest_valley, log_histogram, log_quantile, valley, valley_depth
+from .histogram import (
+    binned_histogram,
+    deepest_valley,
+    log_histogram,
+    log_quantile,
+    valley,
+    valley_depth,
+)
 from .segmentation import HueSat, Rect, colour_box, colour_weight, smooth, wheel_mask
 from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, rect_weight
 
@@ -113,6 +126,18 @@ def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
 
 
+_TEX_SPAN = (float(np.log(1e-4)), float(np.log(0.1)), 64)  # log texture histogram
+
+
+def face_texture(tex: Float[Array, "H W"], weight: Float[Array, "H W"]) -> Float[Array, ""]:
+    """The 95th percentile of ``tex`` over 0/1 ``weight`` (the face: the upper half of the
+    rim's inside, where the mask sees wheel), from a histogram of its log (11 % bins). Not
+    differentiable (a choice of bin)."""
+    log_t = jnp.log(jnp.maximum(jax.lax.stop_gradient(tex), 1e-4))
+    hist, centres = binned_histogram(log_t, weight, _TEX_SPAN, (1,), clip=True)
+    return jnp.exp(log_quantile(hist, centres, 0.95))
+
+
 # A black wheel's threshold moves down to a valley of the histogram only where the population
 # beyond it (up to this factor past the paper-style threshold) outnumbers the valley's bin by
 # at least this much: a cast shadow on the soil, not the wheel's own glow.
@@ -152,9 +177,10 @@ class AdaptiveSegmenter(Segmenter):
     ``p_chroma`` and ``chroma_floor`` (the chroma radius is
     ``p_chroma * max(rectangle chroma spread, chroma_floor)``, RGB units), ``t_chroma``,
     ``p_tex`` and ``tex_floor`` (texture limit ``p_tex * max(rectangle texture, tex_floor)``,
-    intensity units), ``t_tex``. Not differentiable: ``min_wheel_chroma`` (the switch) and
-    ``p_d_int`` (the top of the valley's search: a metal wheel's threshold is at most
-    ``p_d_int * I_w``).
+    intensity units), ``t_tex``, ``p_tex_rim`` (with the rim known, beyond it below its centre:
+    at most ``p_tex_rim`` times the face's 95th percentile). Not differentiable:
+    ``min_wheel_chroma`` (the switch) and ``p_d_int`` (the top of the valley's search: a metal
+    wheel's threshold is at most ``p_d_int * I_w``).
     """
 
     seg: SegmentationParams = SegmentationParams()
@@ -170,6 +196,7 @@ class AdaptiveSegmenter(Segmenter):
     p_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
     tex_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.006)
     t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
+    p_tex_rim: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.3)
 
     def coloured(
         self,
@@ -284,23 +311,32 @@ class AdaptiveSegmenter(Segmenter):
             below = jnp.broadcast_to(rows > cy + rho + _SOIL_GAP_PX, mask.shape)
             below_px = jnp.sum(below.astype(mask.dtype))
             enough = (jnp.sum(inside_px) >= _MIN_DISC_PX) & (below_px >= _MIN_DISC_PX)
+            # Beyond the rim below its centre (where the soil is) only lugs are wheel: texture
+            # no rougher than the face's own.
+            upper = (inside & (rows < cy) & (mask > 0.5)).astype(intensity.dtype)
+            face_tex = face_texture(tex, upper)
+            tight = jax.nn.sigmoid((self.p_tex_rim * face_tex - tex) / self.t_tex)
+            m_tex_rim = jnp.where(inside | (rows < cy), m_tex, jnp.minimum(m_tex, tight))
 
             def with_edge(found: Array) -> tuple[Array, Array]:
                 # The mask at this threshold, and whether it calls the soil below the rim soil.
-                m = by_intensity(self.p_valley * jax.lax.stop_gradient(found)) * m_chroma * m_tex
+                m = by_intensity(self.p_valley * jax.lax.stop_gradient(found)) * m_chroma
+                m = m * m_tex_rim
                 wheel_below = jnp.sum(jnp.where(below, m, 0.0)) / jnp.maximum(below_px, 1.0)
                 return m, enough & (jax.lax.stop_gradient(wheel_below) <= _MAX_SOIL_AS_WHEEL)
 
             hist_in, centres = log_histogram(still, inside_px)
             lo, hi = jnp.log(0.1 * i_w), jnp.log(self.p_d_int * i_w)
-            mask_in, use_in = with_edge(deepest_valley(hist_in, centres, lo, hi)[0])
+            mask_in, use_in = with_edge(deepest_valley(hist_in, centres, lo, hi, jnp.log(i_w))[0])
             hist_below, _ = log_histogram(still, below.astype(intensity.dtype))
             soil = log_quantile(hist_below, centres, 0.5)
-            found, parted = deepest_valley(hist_in + hist_below, centres, soil, jnp.log(i_w))
+            zero = jnp.zeros((), intensity.dtype)  # log 1: the brightest the face can be
+            found, parted = deepest_valley(hist_in + hist_below, centres, soil, jnp.log(i_w), zero)
             mask_soil, use_soil = with_edge(found)
             beyond = by_intensity(jnp.maximum(edge, self.p_valley * jax.lax.stop_gradient(found)))
-            mask_soil = jnp.where(inside, mask_soil, beyond * m_chroma * m_tex)
-            out = jnp.where(inside & use_in, mask_in, mask)
+            mask_soil = jnp.where(inside, mask_soil, beyond * m_chroma * m_tex_rim)
+            base = by_intensity(edge) * m_chroma * m_tex_rim
+            out = jnp.where(inside & use_in, mask_in, base)
             return jnp.where(~use_in & parted & use_soil, mask_soil, out)
 
         def dark_rule() -> Array:

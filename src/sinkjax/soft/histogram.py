@@ -27,6 +27,8 @@ _COPIES = 32
 # of them, each holding at least this share of the pixels in one bin.
 _VALLEY_DEPTH = 0.25
 _VALLEY_MIN_SHARE = 2e-4
+# A valley this deep parts two real populations (not a ripple of one).
+_CLEAR_DEPTH = 0.5
 
 
 def binned_histogram(
@@ -106,19 +108,34 @@ def deepest_valley(
     centres: Float[Array, " B"],
     lo: Float[Array, ""],
     hi: Float[Array, ""],
+    reach: Float[Array, ""] | None = None,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """The intensity threshold at the deepest valley between two populations of the histogram
     within ``lo``-``hi`` (log intensity): the bin whose count lies furthest below the smaller of
     the highest bins on either side of it in that range, relative to that smaller one, where
     it is at least ``_VALLEY_DEPTH`` below and the smaller side holds at least
     ``_VALLEY_MIN_SHARE`` of the pixels in one bin; ``exp(lo)`` where no bin is (one
-    population: nothing to part). Also whether a valley was found. Not differentiable."""
-    inside = (centres >= lo) & (centres <= hi)
-    h = jnp.where(inside, hist, 0.0)
+    population: nothing to part). Also whether a valley was found. Not differentiable.
+
+    ``reach`` (log intensity, above ``hi``): the populations on either side are looked for up
+    to it (the valley still lies in ``lo``-``hi``), and the highest valley at least
+    ``_CLEAR_DEPTH`` deep wins over a deeper one below it: the valley just under the brightest
+    population (a metal wheel's face), not one between two darker ones (holes and soil)."""
+    top = hi if reach is None else reach
+    span = (centres >= lo) & (centres <= top)
+    inside = span & (centres <= hi)
+    h = jnp.where(span, hist, 0.0)
     side = jnp.minimum(jax.lax.cummax(h), jax.lax.cummax(h, reverse=True))
     real = inside & (side >= _VALLEY_MIN_SHARE * jnp.sum(hist))
     depth = jnp.where(real, (side - h) / jnp.maximum(side, 1e-9), 0.0)
     best = jnp.argmax(depth)
+    if reach is not None:
+        # The highest run of clear bins, and its deepest bin (the valley's floor).
+        clear = depth >= _CLEAR_DEPTH
+        last = hist.shape[0] - 1 - jnp.argmax(clear[::-1])
+        gaps = jnp.cumsum(~clear)
+        run = clear & (gaps == gaps[last]) & (jnp.arange(hist.shape[0]) <= last)
+        best = jnp.where(jnp.any(clear), jnp.argmax(jnp.where(run, depth, -1.0)), best)
     found = depth[best] >= _VALLEY_DEPTH
     return jnp.exp(jnp.where(found, centres[best], lo)), found
 
