@@ -16,8 +16,9 @@ test keeps them, under status ``implausible`` with the reason.
   the rim, past the lugs, below the equivalent line's extension, the image must look more like
   the soil just inside the rim than like what lies above the extension. When, at both ends, it
   looks like what is above, the "boundary" is an edge on the wheel itself (soil-coloured dust
-  on its lower part, a shadow line): the same test, at the same places, as the soft method's
-  (:mod:`sinkjax.soft.checks`).
+  on its lower part, a shadow line): the soft method's test at the same places
+  (:func:`sinkjax.soft.probes.soil_lost`), without its second sample of the soil well below the
+  extension (the classic method sees no wheel without colour, whose cast shadow it is for).
 """
 
 from __future__ import annotations
@@ -26,9 +27,8 @@ import math
 
 import numpy as np
 
-from ..soft.checks import (
-    MAX_RING_DISAGREEMENT,
-    N_RING_SAMPLES,
+from ..soft.checks import MAX_RING_DISAGREEMENT, N_RING_SAMPLES, RING_INSET, RING_INSET_PX
+from ..soft.probes import (
     PROBE_ABOVE_PX,
     PROBE_BELOW_PX,
     PROBE_DROP,
@@ -36,8 +36,6 @@ from ..soft.checks import (
     PROBE_MIN_RGB,
     PROBE_NEARER,
     PROBE_OUTSIDE,
-    RING_INSET,
-    RING_INSET_PX,
 )
 
 # A rim radius further than this fraction from the recording's is another circle (the camera is

@@ -43,7 +43,9 @@ weighs the model against its own inputs, with no threshold taken from the render
   just below the extension or 3 % of the radius lower (a berm that the wheel pushed up falls
   away beyond the rim). When at both ends it looks like what is above (the background) at
   both depths, the "boundary" is an edge on the wheel itself (soil-coloured dust on its lower
-  part, a shadow line).
+  part, a shadow line). The wheel's cast shadow can darken the soil inside the rim only, so
+  the samples are also compared with the soil a fifth of the radius below the extension
+  (``soft.probes.soil_lost``).
 - **the soil's step stays inside the rim** (a wheel without colour): a step ``soft.soil_step`` finds
   at the rim's edge below the mask's soil (no contact) is the far edge of a dark cast shadow.
 
@@ -67,7 +69,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .model import Evidence, end_point, measurements, residuals
+from .model import Evidence, measurements, residuals
+from .probes import bilinear, mean_where, on_ring, soil_lost
 
 N_RING_SAMPLES = 256
 N_BAND_DEPTH, N_BAND_ALONG = 48, 64  # samples of the disc segment below the soil line
@@ -124,43 +127,12 @@ MAX_HALF_RING_DISAGREEMENT = 2 * MAX_RING_DISAGREEMENT
 # The ring lies RING_INSET * r (at least RING_INSET_PX) inside the rim: clear of the rim's own
 # edge zone.
 RING_INSET, RING_INSET_PX = 0.04, 2.0
-# Where the "soil goes on beyond the rim" test looks, at each end of the boundary (the classic
-# method's plausibility test, sinkjax.classic.plausible, looks at the same places): the soil just
-# inside the rim, PROBE_INSIDE * r back along the line and PROBE_BELOW_PX below it; outside the
-# rim, PROBE_OUTSIDE * r along the line's extension, PROBE_BELOW_PX and PROBE_BELOW_PX +
-# PROBE_DROP * r below it (soil) and PROBE_ABOVE_PX above it (what lies above the surface). The
-# outside samples look like what is above when they are PROBE_NEARER times nearer to it in RGB
-# (squared: twice as near) and apart from the soil inside by more than PROBE_MIN_RGB.
-PROBE_INSIDE, PROBE_OUTSIDE, PROBE_DROP = 0.1, 0.15, 0.03
-PROBE_BELOW_PX, PROBE_ABOVE_PX = 4.0, 6.0
-PROBE_NEARER, PROBE_MIN_RGB = 4.0, 0.05
 OUTER_RING = 1.2  # x the rim radius: beyond lugs of up to 0.2 r
 NEAR_OUTER_RING = 1.08  # x the rim radius: clear of the rim's edge zone, not of the lugs
 MAX_OUTER_WHEEL = 0.1
 MAX_ABOVE_CENTRE = 0.05
 END_GAP_FRACTION = 0.1
 CHORD_RATIO_RANGE = (0.5, 1.5)
-
-
-def _bilinear(a: Float[Array, "H W"], x: Array, y: Array) -> Array:
-    return jax.scipy.ndimage.map_coordinates(a, [y, x], order=1, mode="nearest")
-
-
-def _on_ring(
-    mask: Float[Array, "H W"], p: Float[Array, " P"], sign: Array, rho: Array, phi: Array
-) -> tuple[Array, Array, Array, Array]:
-    """The mask at angles ``phi`` on a circle of radius ``rho`` about the fitted centre: the
-    values, whether each sample lies inside the image, and its wheel-frame (u, v) offsets."""
-    height, width = mask.shape
-    u, v = rho * jnp.cos(phi), rho * jnp.sin(phi)
-    x, y = p[0] + sign * u, p[1] + v
-    seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    return _bilinear(mask, x, y), seen, u, v
-
-
-def _mean_where(values: Array, seen: Array) -> Array:
-    n_seen = jnp.sum(seen.astype(values.dtype))
-    return jnp.sum(jnp.where(seen, values, 0.0)) / jnp.maximum(n_seen, 1.0)
 
 
 def ring_disagreement(
@@ -173,10 +145,10 @@ def ring_disagreement(
     r = p[2]
     rho = r - jnp.maximum(RING_INSET_PX, RING_INSET * r)
     phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=mask.dtype)  # y down: lower half
-    m, seen, u, v = _on_ring(mask, p, sign, rho, phi)
+    m, seen, u, v = on_ring(mask, p, sign, rho, phi)
     # Wheel above the equivalent line (y down); without contact the whole half ring is wheel.
     wheel_side = ~contact | (v < p[3] * u + p[4])
-    return _mean_where(jnp.where(wheel_side, 1.0 - m, m), seen)
+    return mean_where(jnp.where(wheel_side, 1.0 - m, m), seen)
 
 
 def outer_wheel(
@@ -191,11 +163,11 @@ def outer_wheel(
     already parted wheel from soil, and wheel in the soil beyond it moves no number).
     Differentiable w.r.t. ``mask``; the check fails above ``MAX_OUTER_WHEEL``."""
     phi = jnp.linspace(0.0, jnp.pi, N_RING_SAMPLES // 2, dtype=mask.dtype)  # y down: lower half
-    m, seen, u, v = _on_ring(mask, p, sign, OUTER_RING * p[2], phi)
-    far = _mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
-    m, seen, _, _ = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi)
-    m_up, seen_up, _, _ = _on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi + jnp.pi)
-    excess = _mean_where(m, seen) - _mean_where(m_up, seen_up)
+    m, seen, u, v = on_ring(mask, p, sign, OUTER_RING * p[2], phi)
+    far = mean_where(m, seen & (~contact | (v > p[3] * u + p[4])))
+    m, seen, _, _ = on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi)
+    m_up, seen_up, _, _ = on_ring(mask, p, sign, NEAR_OUTER_RING * p[2], phi + jnp.pi)
+    excess = mean_where(m, seen) - mean_where(m_up, seen_up)
     return jnp.where(contact, far, jnp.maximum(far, excess))
 
 
@@ -222,7 +194,7 @@ def _segment(
     x = p[0] + sign * (a * t[0] + off[:, None] * n[0])
     y = p[1] + a * t[1] + off[:, None] * n[1]
     seen = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
-    m = jnp.where(seen, _bilinear(mask, x.ravel(), y.ravel()).reshape(x.shape), 0.0)
+    m = jnp.where(seen, bilinear(mask, x.ravel(), y.ravel()).reshape(x.shape), 0.0)
     chord = 2.0 * jnp.sqrt(jnp.maximum(rho * rho - d0 * d0, 1.0))
     area = (2.0 * half / N_BAND_ALONG * depth / N_BAND_DEPTH)[:, None] / chord
     return m, jnp.broadcast_to((s - start_px)[:, None], m.shape), jnp.broadcast_to(area, m.shape)
@@ -252,44 +224,6 @@ def _line_shift(
     # A mask pushed a little below 0 (a gradient check, a learned segmenter) must not make the
     # second moment negative: a NaN sigma.
     return mass, jnp.sqrt(jnp.maximum(second, 0.0) + 1e-12), fade
-
-
-def _patch_rgb(image: Float[Array, "H W 3"], x: Array, y: Array) -> Array:
-    # Mean colour of a 5 x 5 px neighbourhood (sampled every 2 px): texture averages out.
-    o = jnp.asarray([-2.0, 0.0, 2.0], image.dtype)
-    xs, ys = jnp.broadcast_to(x + o[:, None], (3, 3)), jnp.broadcast_to(y + o[None, :], (3, 3))
-    xs, ys = xs.ravel(), ys.ravel()
-    return jnp.stack([jnp.mean(_bilinear(image[..., c], xs, ys)) for c in range(3)])
-
-
-def _soil_beyond(image: Float[Array, "H W 3"], p: Float[Array, " P"], sign: Array) -> Array:
-    """True when, at both ends, the image below the line's extension outside the rim looks more
-    like the background above it than like the soil inside the rim (see the module docstring)."""
-    height, width = image.shape[:2]
-    r, k = p[2], p[3]
-    norm = jnp.sqrt(1.0 + k * k)
-    n = jnp.stack([-k, 1.0]) / norm  # down, across the line
-    lost = []
-    for side, alpha, c in ((1.0, p[5], p[6]), (-1.0, p[7], p[8])):
-        e = end_point(alpha, c, r, side)
-        t = side * jnp.stack([1.0, k]) / norm  # along the line, away from the wheel
-        # Below the extension, just under it and 3 % of the radius further down: a
-        # surface that falls away beyond the rim (a berm the wheel pushed up) is soil there.
-        out = e + PROBE_OUTSIDE * r * t
-        below, drop = PROBE_BELOW_PX * n, (PROBE_BELOW_PX + PROBE_DROP * r) * n
-        pts = (e - PROBE_INSIDE * r * t + below, out + below, out + drop, out - PROBE_ABOVE_PX * n)
-        xy = [(p[0] + sign * q[0], p[1] + q[1]) for q in pts]
-        inside = jnp.all(
-            jnp.stack([(x >= 2) & (x <= width - 3) & (y >= 2) & (y <= height - 3) for x, y in xy])
-        )
-        c_in, c_out, c_low, c_up = (_patch_rgb(image, x, y) for x, y in xy)
-        # Clearly more like the background: twice as close, and apart by more than 0.05 in RGB.
-        looks_up = [
-            jnp.sum((c - c_in) ** 2) > PROBE_NEARER * jnp.sum((c - c_up) ** 2) + PROBE_MIN_RGB**2
-            for c in (c_out, c_low)
-        ]
-        lost.append(inside & looks_up[0] & looks_up[1])
-    return lost[0] & lost[1]
 
 
 def _variance(res: Array, w: Array) -> tuple[Array, Array]:
@@ -354,7 +288,7 @@ def plausibility(
             contact & (above > MAX_ABOVE_CENTRE),
             contact & (gap > clearance + jnp.maximum(3.0, END_GAP_FRACTION * p[2])),
             contact & chord_wrong,
-            contact & _soil_beyond(image, p, ev.sign),
+            contact & soil_lost(image, p, ev.sign),
             jnp.asarray(stepped_out),
             outer > MAX_OUTER_WHEEL,
         ]

@@ -47,7 +47,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .checks import _mean_where, _on_ring
+from .probes import mean_where, on_ring
 from .segmentation import smooth
 from .soil_step import colour_edge, disc_grid
 
@@ -119,8 +119,8 @@ def spills(
     centre = jnp.stack([cx, cy]).astype(m.dtype)
 
     def ring_mean(angles: Array, rho: Array) -> Array:
-        v, seen, _, _ = _on_ring(m, centre, jnp.asarray(1.0, m.dtype), rho, angles)
-        return _mean_where(v, seen)
+        v, seen, _, _ = on_ring(m, centre, jnp.asarray(1.0, m.dtype), rho, angles)
+        return mean_where(v, seen)
 
     def excess(ring: float) -> Array:
         rho = ring * r
