@@ -16,14 +16,14 @@ from jaxtyping import Array, Float
 from .model import end_point
 
 # Where the "soil goes on beyond the rim" test looks, at each end of the boundary (the classic
-# method's plausibility test, sinkjax.classic.plausible, looks at the same places): the soil just
-# inside the rim, PROBE_INSIDE * r back along the line and PROBE_BELOW_PX below it; outside the
-# rim, PROBE_OUTSIDE * r along the line's extension, PROBE_BELOW_PX and PROBE_BELOW_PX +
-# PROBE_DROP * r below it (soil) and PROBE_ABOVE_PX above it (what lies above the surface). The
-# outside samples look like what is above when they are PROBE_NEARER times nearer to it in RGB
-# (squared: twice as near) and apart from the soil inside by more than PROBE_MIN_RGB, and as
-# much nearer to it than to the soil PROBE_DEEP * r below the extension (where that sample is
-# not the background too).
+# method's plausibility test, sinkjax.classic.plausible, looks at the same places but the deep
+# one): the soil just inside the rim, PROBE_INSIDE * r back along the line and PROBE_BELOW_PX
+# below it; outside the rim, PROBE_OUTSIDE * r along the line's extension, PROBE_BELOW_PX and
+# PROBE_BELOW_PX + PROBE_DROP * r below it (soil), PROBE_ABOVE_PX above it (what lies above the
+# surface) and PROBE_BELOW_PX + PROBE_DEEP * r below it (the soil, in the light beyond the rim).
+# The outside samples look like what is above when they are PROBE_NEARER times nearer to it in
+# RGB (squared: twice as near) and apart from the soil inside by more than PROBE_MIN_RGB, and as
+# much nearer to it than to the deep sample (where that is not the background too).
 PROBE_INSIDE, PROBE_OUTSIDE, PROBE_DROP = 0.1, 0.15, 0.03
 PROBE_BELOW_PX, PROBE_ABOVE_PX = 4.0, 6.0
 PROBE_NEARER, PROBE_MIN_RGB = 4.0, 0.05
