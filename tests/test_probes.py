@@ -54,8 +54,8 @@ def test_the_wheels_shadow_on_the_soil_inside_the_rim_is_still_soil() -> None:
 @pytest.mark.parametrize("drop", [0.0, 0.05])
 def test_lit_soil_beyond_a_shadow_of_another_colour_is_still_soil(drop) -> None:
     # A neutral grey shadow (lit by the sky alone) inside the rim, the ground beyond it level or
-    # a little lower: in RGB and in chromaticity the lit soil there is nearer the background
-    # than this shadow, but it is the soil found well below the extension.
+    # a little lower: in RGB the lit soil there is nearer the background than this shadow, but
+    # it is the soil found well below the extension.
     shadow, lit, sky = (np.asarray(c) for c in ((0.18, 0.18, 0.19), SOIL, SKY))
     assert np.sum((lit - shadow) ** 2) > 4 * np.sum((lit - sky) ** 2)
     assert not _lost(_picture(tuple(shadow), drop * R))
