@@ -23,8 +23,8 @@ from .checks import line_shift_std, plausibility
 from .colour import linear_light
 from .fit import build_evidence, fit, rim_and_boundary_capacity
 from .hough import Circle, hough_rim
-from .model import Evidence, end_point, measurements
-from .outline import Outline, extract_outline, refine_outline, wheel_below_in_disc
+from .model import end_point, measurements
+from .outline import Outline, extract_outline, refine_outline
 from .rim import RecordingRim, RimChoice, choose_circle
 from .segmentation import Rect, soft_open
 from .segmenter import Segmenter
@@ -167,26 +167,13 @@ def finish(
         lambda: outline,
     )
     ev = build_evidence(outline, choice.circle, sign, s, rim_weight=choice.prior_weight)
-
-    # No boundary, as wheel below the points counted down the whole column: on a wheel without
-    # colour, whose intensity mask takes lit grey sand or shadows beyond the rim for the wheel,
-    # counted again inside the rim only (soil below the rim taken for wheel is no lightening
-    # hole above it), and taken if that finds one. A hue mask seldom takes the soil for wheel:
-    # there the first count stands (on the coloured hard presets the second one found more
-    # false contacts, on dust and shading, than it recovered).
-    def in_disc() -> Evidence:
-        below = wheel_below_in_disc(outline, mask, c.cx_px, c.cy_px, c.r_px)
-        again = build_evidence(below, choice.circle, sign, s, rim_weight=choice.prior_weight)
-        found = _has_contact(again, s)
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(found, a, b), again, ev)
-
-    grey = prepared.features == FEATURES_INTENSITY
-    ev = jax.lax.cond(_has_contact(ev, s) | ~grey, lambda: ev, in_disc)
     res = fit(ev, capacity=rim_and_boundary_capacity(*mask.shape))
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
-    contact = _has_contact(ev, s)
+    # A shallow chord's edge is faint (the soil covers a sliver of a pixel or two), so its points
+    # weigh little: it is a contact by its points' number and fill (soft.shallow), not weight.
+    contact = (jnp.sum(ev.w_line) >= s.min_boundary_points) | (ev.shallow_chord > 0)
     # A wheel without colour: the soil's step found no soil inside the rim where the mask did
     # (soft.checks: the far edge of its cast shadow, as dark as its dusted face).
     stepped_out = stepped & ~contact & (prepared.features == FEATURES_INTENSITY)
@@ -228,12 +215,6 @@ def finish(
         rim_support=choice.circle.support,
         features=prepared.features,
     )
-
-
-def _has_contact(ev: Evidence, s: SoftSettings) -> Array:
-    # A shallow chord's edge is faint (the soil covers a sliver of a pixel or two), so its points
-    # weigh little: it is a contact by its points' number and fill (soft.shallow), not weight.
-    return (jnp.sum(ev.w_line) >= s.min_boundary_points) | (ev.shallow_chord > 0)
 
 
 def hidden_contact_std(

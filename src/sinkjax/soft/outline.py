@@ -4,8 +4,7 @@ The paper takes the wheel's outline from the binary image. Here the outline is t
 soft mask's gradient magnitude, thinned by non-maximum suppression (one point per pixel step along
 the edge) and located to sub-pixel precision by a parabola through the ridge. Each point carries
 its unit normal (pointing from wheel to non-wheel), a soft selection weight, and how much wheel
-lies below it in its column (a wheel-soil boundary point has only soil below; where that finds no
-boundary, :func:`wheel_below_in_disc` counts it again inside the rim only).
+lies below it in its column (a wheel-soil boundary point has only soil below).
 Shapes are static: at most ``capacity`` points, padded with zero weight, so it jit-compiles once
 per image size and vmaps over frames.
 """
@@ -352,37 +351,3 @@ def _edge_offset(
     # Trapezoid integral of the profile from the window's start: the edge's offset from -half.
     t_edge = -half + step * (jnp.sum(proj, 1) - 0.5 * (proj[:, 0] + proj[:, -1]))
     return jnp.where(ok, t_edge, 0.0)
-
-
-def wheel_below_in_disc(
-    outline: Outline,
-    mask: Float[Array, "H W"],
-    cx_px: Float[Array, ""],
-    cy_px: Float[Array, ""],
-    r_px: Float[Array, ""],
-) -> Outline:
-    """``outline`` with each point's ``wheel_below_px`` counted inside the rim's disc only.
-
-    Below a wheel-soil boundary point lies soil; below the top edge of a lightening hole or of
-    a dark band across the face, wheel, and that wheel lies inside the rim. Below the disc
-    there is only soil, background and the wheel's cast shadow: a mask that takes a grey soil
-    for a bare-metal face there says nothing about the point above, yet counted down the whole
-    column it took every point of a plain soil line for a hole's edge (a whole recording
-    read as no contact). Counted from 3 px below the point (the edge's own blur), as
-    :func:`extract_outline` counts; differentiable w.r.t. ``mask``.
-    """
-    height, width = mask.shape
-    dt = mask.dtype
-    solid = jax.nn.sigmoid((smooth(mask) - 0.5) / 0.1)
-    # Exclusive prefix sums down each column: above[j] = solid rows 0 .. j-1.
-    above = jax.lax.associative_scan(jnp.add, solid, axis=0)
-    above = jnp.concatenate([jnp.zeros((1, width), dt), above], 0)
-    cols = jnp.clip(jnp.round(outline.x_px).astype(jnp.int32), 0, width - 1)
-    rows = jnp.clip(jnp.round(outline.y_px).astype(jnp.int32), 0, height - 1)
-    # The disc's lowest row in each point's column (a discrete choice: no gradient through it).
-    dx = jax.lax.stop_gradient(cols.astype(dt) - cx_px)
-    half = jnp.sqrt(jnp.maximum(jax.lax.stop_gradient(r_px) ** 2 - dx * dx, 0.0))
-    bottom = jnp.floor(jax.lax.stop_gradient(cy_px) + half).astype(jnp.int32)
-    start = jnp.clip(rows + 3, 0, height)
-    stop = jnp.clip(bottom + 1, start, height)
-    return eqx.tree_at(lambda o: o.wheel_below_px, outline, above[stop, cols] - above[start, cols])
