@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..result import FrameResult, failed
+from ..result import FEATURES_INTENSITY, FrameResult, failed
 from ..rig import Rig, rect_problem, rim_hint_range_px
 from ..status import Status
 from ..xla import jit
@@ -55,7 +55,9 @@ def _prepare_u8(
     return prepare(image, mask, rim, None, rig.rim_range_px, features, rig.srgb)
 
 
-def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstimate:
+def _finish_u8(
+    image_u8: Array, prepared: Prepared, rig: RigArrays, recount_in_disc: bool = False
+) -> SoftEstimate:
     return finish(
         _float(image_u8),
         prepared,
@@ -63,7 +65,14 @@ def _finish_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstim
         wheel_radius_mm=rig.wheel_radius_mm,
         uncertainty=rig.uncertainty,
         srgb=rig.srgb,
+        recount_in_disc=recount_in_disc,
     )
+
+
+def _recount_u8(image_u8: Array, prepared: Prepared, rig: RigArrays) -> SoftEstimate:
+    # finish with the wheel below the outline counted inside the rim (soft.below), for the
+    # frames of a wheel without colour where finish found no contact.
+    return _finish_u8(image_u8, prepared, rig, recount_in_disc=True)
 
 
 # No static arguments: these compile once per image size (and batch size) and segmenter
@@ -74,6 +83,8 @@ _finish_one = jit(_finish_u8)
 _prepare_batch = jit(jax.vmap(_prepare_u8, in_axes=(0, None, None, None)))
 _rechoose_batch = jit(jax.vmap(rechoose, in_axes=(0, None)))
 _finish_batch = jit(jax.vmap(_finish_u8, in_axes=(0, 0, None)))
+_recount_one = jit(_recount_u8)
+_recount_batch = jit(jax.vmap(_recount_u8, in_axes=(0, 0, None)))
 
 # (name, jitted function, example arguments) -> the callable to run on arguments of that shape.
 CompiledProvider = Callable[[str, Any, tuple[Any, ...]], Callable[..., Any]]
@@ -271,6 +282,7 @@ class _Run:
             "prepare": (_prepare_one, _prepare_batch),
             "rechoose": (_rechoose_one, _rechoose_batch),
             "finish": (_finish_one, _finish_batch),
+            "recount": (_recount_one, _recount_batch),
         }
         fn = fns[name][int(self.vmap)]
         if not self.default:
@@ -320,21 +332,39 @@ class _Run:
         frames = self._frames(images)
         fn = warmed(self._fn("finish", (frames[0], prepared[0], self.arrays)))
         each = [fn(f, p, self.arrays) for f, p in zip(frames, prepared, strict=True)]
-        if self.vmap:
-            return jax.tree_util.tree_map(np.asarray, each[0])
-        return _stack(each)  # type: ignore[return-value]
+        out = jax.tree_util.tree_map(np.asarray, each[0]) if self.vmap else _stack(each)
+        return self._recount(frames, prepared, out, len(images))  # type: ignore[arg-type]
+
+    def _recount(
+        self, frames: list[Array], prepared: list[Prepared], out: SoftEstimate, n: int
+    ) -> SoftEstimate:
+        """``out`` with the frames of a wheel without colour read as no contact measured again
+        with the wheel below the outline counted inside the rim (:mod:`sinkjax.soft.below`),
+        where that finds a contact: compiled only for a run with such frames."""
+        grey = np.asarray(out.features)[:n] == FEATURES_INTENSITY
+        again = np.flatnonzero(grey & (np.asarray(out.sinkage_mm)[:n] == 0.0))
+        if again.size == 0:
+            return out
+        fn = self._fn("recount", (frames[0], prepared[0], self.arrays))
+        if self.vmap:  # one padded batch: all of it again
+            new = jax.tree_util.tree_map(np.asarray, fn(frames[0], prepared[0], self.arrays))
+            rows = [jax.tree_util.tree_map(lambda a, i=i: a[i], new) for i in again]
+        else:
+            rows = [fn(frames[i], prepared[i], self.arrays) for i in again]
+        leaves, tree = jax.tree_util.tree_flatten(out)
+        leaves = [np.array(a) for a in leaves]
+        for i, row in zip(again, rows, strict=True):
+            if float(row.sinkage_mm) != 0.0:
+                for a, b in zip(leaves, jax.tree_util.tree_leaves(row), strict=True):
+                    a[i] = np.asarray(b)
+        return jax.tree_util.tree_unflatten(tree, leaves)  # type: ignore[no-any-return]
 
 
 def _vote(out: SoftEstimate, n: int) -> RecordingRim:
     """The recording's rim from the first ``n`` frames' own fits (per-frame if no consensus)."""
-    found = combine_rims(
-        np.asarray(out.params[:n, :3]), _rim_evidence(out, n), min_support=_min_support()
-    )
+    least = float(SoftSettings().min_rim_support)
+    found = combine_rims(np.asarray(out.params[:n, :3]), _rim_evidence(out, n), min_support=least)
     return RecordingRim.per_frame() if found is None else found
-
-
-def _min_support() -> float:
-    return float(SoftSettings().min_rim_support)
 
 
 def _rim_evidence(out: SoftEstimate, n: int) -> np.ndarray:

@@ -19,6 +19,7 @@ from ..result import FEATURES_INTENSITY, FEATURES_UNKNOWN
 from ..rig import Rig, SegmentationParams, rim_hint_range_px, srgb_flag
 from ..status import Status
 from .adaptive import default_segmenter
+from .below import has_contact, recounted
 from .checks import line_shift_std, plausibility
 from .colour import linear_light
 from .fit import build_evidence, fit, rim_and_boundary_capacity
@@ -137,9 +138,13 @@ def finish(
     uncertainty: UncertaintyModel | None = None,
     settings: SoftSettings | None = None,
     srgb: bool | Float[Array, ""] = False,
+    recount_in_disc: bool = False,
 ) -> SoftEstimate:
     """The second half of the method: the joint fit, its uncertainty and the checks.
-    ``srgb``: as for :func:`prepare` (an outline taken again is located in linear light)."""
+    ``srgb``: as for :func:`prepare` (an outline taken again is located in linear light).
+    ``recount_in_disc`` (static): where no boundary is found on a mask made from intensity,
+    count the wheel below each outline point again inside the rim only, and take that if it
+    finds one (the recording runner, ``soft.batch``, measures such frames again with it)."""
     mask, outline, choice = prepared.mask, prepared.outline, prepared.choice
     s = (SoftSettings() if settings is None else settings).astype(mask.dtype)
     sign = travel_sign(travel) if isinstance(travel, str) else travel
@@ -167,13 +172,13 @@ def finish(
         lambda: outline,
     )
     ev = build_evidence(outline, choice.circle, sign, s, rim_weight=choice.prior_weight)
+    if recount_in_disc:
+        ev = recounted(ev, outline, mask, choice, sign, s, prepared.features)
     res = fit(ev, capacity=rim_and_boundary_capacity(*mask.shape))
     p = res.params
     cov = covariance(p, ev)
     est = measurements(p, wheel_radius_mm)
-    # A shallow chord's edge is faint (the soil covers a sliver of a pixel or two), so its points
-    # weigh little: it is a contact by its points' number and fill (soft.shallow), not weight.
-    contact = (jnp.sum(ev.w_line) >= s.min_boundary_points) | (ev.shallow_chord > 0)
+    contact = has_contact(ev, s)
     # A wheel without colour: the soil's step found no soil inside the rim where the mask did
     # (soft.checks: the far edge of its cast shadow, as dark as its dusted face).
     stepped_out = stepped & ~contact & (prepared.features == FEATURES_INTENSITY)
@@ -318,13 +323,15 @@ def measure_from_mask(
     rim: RecordingRim | None = None,
     features: ArrayLike = FEATURES_UNKNOWN,
     srgb: bool | Float[Array, ""] = False,
+    recount_in_disc: bool = False,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
     ``measure`` is ``measure_from_mask(image, segmenter(image, rect))``; a segmenter outside
     JAX (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
     outline is located on its colours. Keyword arguments as for :func:`measure`; ``features``
-    (the estimate's ``features``): the ``FEATURES_*`` code of what made the mask, if known.
+    (the estimate's ``features``): the ``FEATURES_*`` code of what made the mask, if known;
+    ``recount_in_disc`` (static): as for :func:`finish`.
     Raises ValueError if the shapes disagree.
     """
     prepared = prepare(image, mask, rim, settings, rim_range_px, features, srgb)
@@ -336,6 +343,7 @@ def measure_from_mask(
         uncertainty=uncertainty,
         settings=settings,
         srgb=srgb,
+        recount_in_disc=recount_in_disc,
     )
 
 
