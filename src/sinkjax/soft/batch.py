@@ -5,8 +5,9 @@ an image size is measured with each frame's own rim; their circles vote for the 
 (``soft.rim.combine_rims``), and the same prepared frames are then finished again with that rim
 held as a strong prior (segmented again first where the segmenter uses the rim:
 ``Segmenter.with_rim``), as is every later frame: a stream is read once, and the output depends
-only on the frames, never on how a run was cut into tasks. ``estimate_batch`` is the same for a
-list of frames taken as one recording.
+only on the frames, never on how a run was cut into tasks. A frame of a wheel without colour read
+as no contact is measured again with the wheel below its outline counted inside the rim
+(``soft.below``). ``estimate_batch`` is the same for a list of frames taken as one recording.
 """
 
 from __future__ import annotations
