@@ -12,7 +12,9 @@ Developed on seeds 7 and 5; the reported run uses seed 8, and 9 and 10 are furth
 tuned on. A black wheel's shading-corrected threshold (``soft.dark_face``) was developed on seeds
 16-18 (``--seed 16``) and is reported on 8, 9 and the never-seen 20-23. A metal wheel's highest
 clear valley inside the rim and texture test beyond it were developed on seeds 12 and 16-20 and
-are reported on 8, 9, 21-23 and the never-seen 24 and 25.
+are reported on 8, 9, 21-23 and the never-seen 24 and 25. The chromaticity test for metal
+wheels and the pooled texture beyond the rim (``soft.grey_features``) were developed on seeds 24,
+36, 37, 8, 9 and 20 and are reported on all eighteen (8, 9, 20-25, 30-39) and the never-seen 40+.
 
     python experiments/black_wheels.py                 # 4 presets x 3 recordings x 8 frames
     python experiments/black_wheels.py --quick         # 4 presets x 1 recording x 3 frames

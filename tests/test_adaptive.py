@@ -237,18 +237,22 @@ def test_soil_as_bright_as_the_shaded_side_is_parted_by_the_soil_below() -> None
     """A metal wheel over grey sand nearly as bright as its shaded side (the frame's threshold
     and the rim's first search both call the sand wheel): the threshold between the soil below
     the rim and the wheel, used inside the rim and beyond it, gives the renderer's exact wheel
-    over the whole frame; the inside stays as good."""
-    for seed in (9000, 11000):
+    over the whole frame; the inside stays as good. (Seed 9000 was such a frame until the
+    chromaticity test, tests/test_grey_features.py, parted most of its sand without the rim;
+    the rim still does better there.)"""
+    for seed, hard in ((11000, True), (9000, False)):
         a, b, truth, inside = _masks_with_and_without_rim("metal_wheel", seed)
         frame = np.ones_like(inside)
-        assert _iou(a, truth, frame) < 0.6  # the sand taken for wheel
-        assert _iou(b, truth, frame) > 0.8, seed
+        if hard:
+            assert _iou(a, truth, frame) < 0.6  # the sand taken for wheel
+        assert _iou(b, truth, frame) > max(0.8, _iou(a, truth, frame) + 0.03), seed
         assert _iou(b, truth, inside) >= _iou(a, truth, inside) - 0.02, seed
         # The soil below the rim: rows clear of the rim's lowest by 2 px.
         last = np.nonzero(inside.any(axis=1))[0].max()
         below = np.arange(inside.shape[0])[:, None] > last + 2
         below = np.broadcast_to(below, inside.shape)
-        assert b[below].mean() < 0.05 < a[below].mean()
+        assert b[below].mean() < 0.05
+        assert b[below].mean() < a[below].mean() - (0.5 if hard else 0.02), seed
 
 
 @pytest.mark.parametrize(

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sinkjax import synth
-from sinkjax.soft.adaptive import AdaptiveSegmenter, face_texture
+from sinkjax.soft.adaptive import AdaptiveSegmenter, face_texture, pooled_texture
 from sinkjax.soft.histogram import deepest_valley, log_histogram
 from sinkjax.synth.layers import SOIL, WHEEL_LAYERS, coverage
 
@@ -61,6 +61,23 @@ def test_face_texture_is_the_95th_percentile() -> None:
     assert np.log(got) == pytest.approx(np.log(np.quantile(tex[:120], 0.95)), abs=1.5 * bin_width)
 
 
+def test_pooled_texture_is_the_roughest_corner_window_mean() -> None:
+    # Against a direct NumPy loop: the mean over each of the four 5 x 5 windows with the pixel
+    # at a corner (the image edge-replicated), the largest of them.
+    rng = np.random.default_rng(3)
+    tex = rng.uniform(0.0, 0.02, (13, 17))
+    got = np.asarray(pooled_texture(jnp.asarray(tex), 5))
+    p = np.pad(tex, 4, mode="edge")
+    want = np.zeros_like(tex)
+    for y in range(13):
+        for x in range(17):
+            means = [
+                p[y + dy : y + dy + 5, x + dx : x + dx + 5].mean() for dy in (0, 4) for dx in (0, 4)
+            ]
+            want[y, x] = max(means)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
 _FN = jax.jit(lambda s, x, r, d: s.with_rim(x, r, d))
 
 
@@ -85,16 +102,23 @@ def _rim_frame(seed: int, rec: int, i: int) -> tuple[np.ndarray, ...]:
     return off, on, wheel, soil, inside, np.broadcast_to(yy > t.center_y_px, inside.shape)
 
 
-@pytest.mark.parametrize(("seed", "rec", "i"), [(16, 0, 0), (16, 0, 1), (20, 0, 0), (17, 0, 0)])
+@pytest.mark.parametrize(
+    ("seed", "rec", "i"), [(16, 0, 0), (16, 0, 1), (20, 0, 0), (17, 0, 0), (36, 2, 0)]
+)
 def test_texture_beyond_the_rim_against_rendered_truth(seed: int, rec: int, i: int) -> None:
-    """Lit grey sand as bright as a metal face (16/0, 20/0): the soil beyond the rim below its
-    centre that the mask called wheel (thousands of px, joined to the face at the rim) shrinks
-    tenfold; brown soil (17/0, told by its chroma already) is untouched. Inside the rim and above
-    its centre nothing changes; beyond it the mask only loses pixels."""
+    """Lit grey sand as bright as a metal face (16/0, 20/0; 36/2: bright, mottled and grainy,
+    a quarter of its pixels one by one as smooth as the face, a twentieth averaged): the soil
+    beyond the rim below its centre that the mask called wheel (thousands of px, joined to the
+    face at the rim) shrinks tenfold; brown soil (17/0, told by its chroma already) is
+    untouched. Beyond the rim the mask only loses pixels. Inside the rim the soil below it,
+    now called soil, lets the inside's own threshold be used (``inside_rule``): the mask there
+    gets no worse against the truth (wheel called not wheel plus soil called wheel) by more
+    than 0.1 % of the inside (36/2: 384 -> 386 px of 88 752; 16/0: 3 467 -> 3 002)."""
     off, on, wheel, soil, inside, lower = _rim_frame(seed, rec, i)
     beyond = ~inside & lower
-    np.testing.assert_array_equal(off[inside | ~lower], on[inside | ~lower])
-    assert not (on & ~off).any()
+    assert not (on & ~off & beyond).any()
+    wrong = [int(((m & soil) | (~m & wheel))[inside].sum()) for m in (off, on)]
+    assert wrong[1] <= wrong[0] + 1e-3 * inside.sum(), wrong
     before, after = int((off & soil & beyond).sum()), int((on & soil & beyond).sum())
     if seed == 17:
         assert before == after == 0

@@ -24,33 +24,36 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
     wheel's population and the background's nearest below it, where the fewest pixels are
     (searched between ``0.1 I_w`` and ``p_d_int * I_w``).
   - Chroma: the opponent colour (R - (G + B)/2, sqrt(3)/2 (G - B)) stays within ``p_chroma``
-    times a floor of the rectangle's spread of it (brown soil, however dark, has chroma). A
+    times a floor of the rectangle's spread of it (brown soil, however dark, has chroma). For a
+    metal wheel, the chroma divided by the intensity (chromaticity; ``soft.grey_features``): the
+    wheel's shadow on brown soil is nearly as grey as the wheel in chroma, not in chromaticity. A
     clipped pixel (a channel at the sensor's top) has lost its chroma and is not judged by it.
   - Texture: the local intensity spread after removing the window's own plane (shading is a
     gradient, not texture), the smallest of four one-sided windows (so that an edge does not
     count as texture on either side), stays under ``p_tex`` times the rectangle's (sand has
     grain, rubber and metal do not).
 
-With the recording's rim known (:meth:`AdaptiveSegmenter.with_rim`, which the soft method uses
-once a recording's rim is found), a metal wheel's intensity threshold inside the rim comes from
-the inside's own histogram: only wheel and soil can be there, not the background, so the
-threshold goes to the valley just under the wheel's population (its shaded side included,
-however dark): the highest clear valley, with the face's whole population on its bright side,
-not a deeper one between its holes and the soil in its shadow
-(:func:`~sinkjax.soft.histogram.deepest_valley` with ``reach``; none: all of the inside passes
-the intensity test and chroma and texture alone part wheel from soil). It is used only where
-that rule still calls the soil below the rim (the frame's bottom rows under the circle) soil.
-Else, for a lit soil nearly as bright as the wheel's shaded side (grey sand), the threshold goes
-to the valley between the soil below the rim and the wheel, in the histogram of both (searched
-from the soil's median up to I_w, the face's whole population counted), inside the rim and
-beyond it (no lower than the frame's own there), where that calls the soil below soil; else the
-frame's own threshold stays. Beyond the rim below its centre, where only soil and lugs can be,
-the texture limit is at most ``p_tex_rim`` times the face's own 95th percentile (the upper half
-of the inside): lit grey sand as bright as the face, under the frame's texture limit, is still
-rougher than the face (the narrow lugs there, rough at both their edges, are lost too; they are
-not measured). A black wheel's threshold below the rim's centre comes from its
-shading-corrected face (:mod:`~sinkjax.soft.dark_face`): the wheel's cast shadow on the soil can
-be as dark as its lit side, but not as dark as the face just above it where they meet.
+With the recording's rim known (:meth:`AdaptiveSegmenter.with_rim`, which the soft method uses once
+a recording's rim is found), a metal wheel's intensity threshold inside the rim comes from the
+inside's own histogram: only wheel and soil can be there, not the background, so the threshold goes
+to the valley just under the wheel's population (its shaded side included, however dark): the
+highest clear valley, with the face's whole population on its bright side, not a deeper one between
+its holes and the soil in its shadow (:func:`~sinkjax.soft.histogram.deepest_valley` with ``reach``;
+none: all of the inside passes the intensity test and chroma and texture alone part wheel from
+soil). It is used only where that rule still calls the soil below the rim (the frame's bottom rows
+under the circle) soil. Else, for a lit soil nearly as bright as the wheel's shaded side (grey
+sand), the threshold goes to the valley between the soil below the rim and the wheel, in the
+histogram of both (searched from the soil's median up to I_w, the face's whole population counted),
+inside the rim and beyond it (no lower than the frame's own there), where that calls the soil below
+soil; else the frame's own threshold stays. Beyond the rim below its centre, where only soil and
+lugs can be, the texture limit is at most ``p_tex_rim`` times the face's own 95th percentile (the
+upper half of the inside), on the texture averaged over 11 px windows (:func:`pooled_texture`): lit
+grey sand as bright as the face, under the frame's texture limit, is still rougher than the face,
+and averaged its few grains as smooth as the face no longer make patches of "wheel" (the narrow lugs
+there, rough at both their edges, are lost too; they are not measured). A black wheel's threshold
+below the rim's centre comes from its shading-corrected face (:mod:`~sinkjax.soft.dark_face`): the
+wheel's cast shadow on the soil can be as dark as its lit side, but not as dark as the face just
+above it where they meet.
 
 The switch is a ``lax.cond`` on traced values: one compiled function serves every wheel. The
 branch not taken gets no gradient; the thresholds and temperatures are array leaves.
@@ -61,14 +64,19 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..rig import CLIP_LEVEL, MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .dark_face import corrected_edge
+from .grey_features import (
+    chroma_distance,
+    chromaticity_distance,
+    face_texture as face_texture,
+    pooled_texture as pooled_texture,
+    texture as texture,
+)
 from .histogram import (
-    binned_histogram,
     deepest_valley,
     log_histogram,
     log_quantile,
@@ -79,63 +87,8 @@ from .segmentation import HueSat, Rect, colour_box, colour_weight, smooth, wheel
 from .segmenter import FEATURES_HUE_SAT, FEATURES_INTENSITY, Disc, Segmenter, rect_weight
 
 _SQRT3_2 = 0.8660254037844386
-_TEX_WINDOW_PX = 5  # one-sided texture windows, px on a side
-
-
-def _box_mean(a: Float[Array, "H W"], size: int) -> Float[Array, "h w"]:
-    # Mean over every size x size window lying inside ``a`` (index = the window's top-left).
-    s = jax.lax.reduce_window(a, 0.0, jax.lax.add, (size, size), (1, 1), "VALID")
-    return s / float(size * size)
-
-
-def _window_moments(a: Float[Array, "H W"], size: int) -> tuple[Array, Array]:
-    # Sums of a * (x offset) and a * (y offset) from each size x size window's centre, over
-    # every window lying inside ``a`` (index = the window's top-left): column (row) sums of
-    # the window, weighted by their offsets (slices: a convolution is slower on a CPU).
-    height, width = a.shape
-    h, w = height - size + 1, width - size + 1
-    cols = jax.lax.reduce_window(a, 0.0, jax.lax.add, (size, 1), (1, 1), "VALID")
-    rows = jax.lax.reduce_window(a, 0.0, jax.lax.add, (1, size), (1, 1), "VALID")
-    offsets = [j - 0.5 * (size - 1) for j in range(size)]
-    sx = sum(o * cols[:, j : j + w] for j, o in enumerate(offsets))
-    sy = sum(o * rows[i : i + h, :] for i, o in enumerate(offsets))
-    return sx, sy
-
-
-def texture(intensity: Float[Array, "H W"], size: int = _TEX_WINDOW_PX) -> Float[Array, "H W"]:
-    """Local intensity spread: the std of the residual of a least-squares plane over a
-    size x size window (shading is a gradient, not texture), the smallest over the four windows
-    that have the pixel at a corner (the image edge-replicated): a pixel next to an edge keeps
-    the spread of its own side."""
-    k = size - 1
-    p = jnp.pad(intensity, k, mode="edge")
-    mean = _box_mean(p, size)
-    var = jnp.maximum(_box_mean(p * p, size) - mean * mean, 0.0)
-    # The plane's share: x and y offsets from the window's centre are orthogonal, so each
-    # slope's explained variance is (sum I dx)^2 / (n sum dx^2).
-    sxx = float(size * np.sum((np.arange(size) - 0.5 * k) ** 2))
-    sx, sy = _window_moments(p, size)
-    var = jnp.maximum(var - (sx * sx + sy * sy) / (sxx * size * size), 0.0)
-    h, w = intensity.shape
-    # var[a, b] is the window whose top-left pixel is (a - k, b - k): the pixel's own windows
-    # start at offsets 0 (pixel bottom/right) and k (pixel top/left).
-    corners = [var[dy : dy + h, dx : dx + w] for dy in (0, k) for dx in (0, k)]
-    v = jnp.min(jnp.stack(corners), axis=0)
-    # Double where: sqrt has an infinite derivative at 0 (a flat window).
-    pos = v > 1e-12
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, v, 1.0)), 0.0)
-
-
-_TEX_SPAN = (float(np.log(1e-4)), float(np.log(0.1)), 64)  # log texture histogram
-
-
-def face_texture(tex: Float[Array, "H W"], weight: Float[Array, "H W"]) -> Float[Array, ""]:
-    """The 95th percentile of ``tex`` over 0/1 ``weight`` (the face: the upper half of the
-    rim's inside, where the mask sees wheel), from a histogram of its log (11 % bins). Not
-    differentiable (a choice of bin)."""
-    log_t = jnp.log(jnp.maximum(jax.lax.stop_gradient(tex), 1e-4))
-    hist, centres = binned_histogram(log_t, weight, _TEX_SPAN, (1,), clip=True)
-    return jnp.exp(log_quantile(hist, centres, 0.95))
+_POOL_PX = 11  # beyond the rim below its centre: texture averaged over windows this wide
+_POOL_SHARPEN = 4.0
 
 
 # A black wheel's threshold moves down to a valley of the histogram only where the population
@@ -270,13 +223,18 @@ class AdaptiveSegmenter(Segmenter):
         def by_intensity(edge: Array) -> Array:
             return jax.nn.sigmoid(side * (edge - intensity) / (self.t_int * edge))
 
-        dq1, dq2 = q1 - rect_mean(q1), q2 - rect_mean(q2)
-        spread_q = jnp.sqrt(rect_mean(dq1 * dq1 + dq2 * dq2) + 1e-12)
+        # A black wheel: chroma (a dark wheel's chromaticity is noise). A metal one:
+        # chromaticity, which a shadow on brown soil keeps (grey_features).
+        dist_q, spread_q = chroma_distance(q1, q2, weight)
+        dist_r, spread_r = chromaticity_distance(q1, q2, intensity, weight)
         radius_q = self.p_chroma * jnp.maximum(spread_q, self.chroma_floor)
-        dist2 = dq1 * dq1 + dq2 * dq2
-        pos = dist2 > 1e-24
-        dist_q = jnp.where(pos, jnp.sqrt(jnp.where(pos, dist2, 1.0)), 0.0)
-        m_chroma = jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma)
+        lit = jnp.maximum(i_w, 1e-3)  # the face's intensity: chromaticity units to RGB units
+        radius_r = self.p_chroma * jnp.maximum(spread_r, self.chroma_floor / lit)
+        m_chroma = jnp.where(
+            dark,
+            jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma),
+            jax.nn.sigmoid((radius_r - dist_r) * lit / self.t_chroma),
+        )
         # A clipped channel (a highlight, an over-exposed face) leaves no chroma to judge.
         clipped = jax.nn.sigmoid((smooth(jnp.max(image, axis=-1)) - CLIP_LEVEL) / 0.01)
         m_chroma = 1.0 - (1.0 - m_chroma) * (1.0 - clipped)
@@ -312,10 +270,11 @@ class AdaptiveSegmenter(Segmenter):
             below_px = jnp.sum(below.astype(mask.dtype))
             enough = (jnp.sum(inside_px) >= _MIN_DISC_PX) & (below_px >= _MIN_DISC_PX)
             # Beyond the rim below its centre (where the soil is) only lugs are wheel: texture
-            # no rougher than the face's own.
+            # no rougher than the face's own, averaged (its spread narrower: a sharper sigmoid).
             upper = (inside & (rows < cy) & (mask > 0.5)).astype(intensity.dtype)
             face_tex = face_texture(tex, upper)
-            tight = jax.nn.sigmoid((self.p_tex_rim * face_tex - tex) / self.t_tex)
+            rough = pooled_texture(tex, _POOL_PX)
+            tight = jax.nn.sigmoid(_POOL_SHARPEN * (self.p_tex_rim * face_tex - rough) / self.t_tex)
             m_tex_rim = jnp.where(inside | (rows < cy), m_tex, jnp.minimum(m_tex, tight))
 
             def with_edge(found: Array) -> tuple[Array, Array]:
