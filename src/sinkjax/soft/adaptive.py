@@ -7,7 +7,8 @@ select noise. The rectangle's mean chroma vector (saturation times the unit hue 
 averaged: noise averages out, a real tint does not) says which case a frame is:
 
 - at least ``min_wheel_chroma``: the paper's test, exactly
-  :func:`~sinkjax.soft.segmentation.wheel_mask` (the same numbers as before);
+  :func:`~sinkjax.soft.segmentation.wheel_mask` (the same numbers as before), of the frame
+  blurred first where sensor noise drowns a dim wheel's hue (:mod:`~sinkjax.soft.denoise`);
 - below: a soft distance in a small feature space, each feature scaled by the rectangle's own
   statistics (the paper's P_a/P_d generalised).
 
@@ -69,6 +70,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..rig import CLIP_LEVEL, MIN_WHEEL_CHROMA, SegmentationParams
 from .colour import rgb_to_hsi
 from .dark_face import corrected_edge
+from .denoise import RATIO_OFF, applied_blur_px, denoise, noise_ratio
 from .grey_features import (
     chroma_distance,
     chromaticity_distance,
@@ -318,6 +320,10 @@ class AdaptiveSegmenter(Segmenter):
     def __call__(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, "H W"]:
         return self._mask(image, rect, None)
 
+    def blur_px(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, ""]:
+        # A dim coloured wheel's frame is blurred as its noise asks (soft.denoise).
+        return jnp.where(self.coloured(image, rect), applied_blur_px(image, rect), 0.0)
+
     def uses_rim(self, features: int) -> bool:
         return features == FEATURES_INTENSITY  # the H/S mask does not use the rim
 
@@ -334,8 +340,18 @@ class AdaptiveSegmenter(Segmenter):
         box = colour_box(image, rect)
         return jax.lax.cond(
             self.coloured(image, rect, hs, box),
-            lambda: wheel_mask(image, self.seg, rect, hs=hs, box=box),
+            lambda: self._hs_mask(image, rect, hs, box),
             lambda: self.grey_mask(image, rect, disc),
+        )
+
+    def _hs_mask(self, image: Array, rect: Rect, hs: HueSat, box: Array) -> Array:
+        # The H/S mask, of the frame blurred as its noise asks where a dim wheel's hue is
+        # drowned in it (soft.denoise); else of the frame itself, exactly.
+        ratio = noise_ratio(image, rect)
+        return jax.lax.cond(
+            ratio > RATIO_OFF,
+            lambda: wheel_mask(denoise(image, rect, ratio), self.seg, rect),
+            lambda: wheel_mask(image, self.seg, rect, hs=hs, box=box),
         )
 
 

@@ -53,7 +53,8 @@ def _prepare_u8(
     image = _float(image_u8)
     mask = segmenter.with_rim(image, rig.rect_px, rim.disc())
     features = segmenter.features(image, rig.rect_px)
-    return prepare(image, mask, rim, None, rig.rim_range_px, features, rig.srgb)
+    blur = segmenter.blur_px(image, rig.rect_px)  # widens the sigmas (soft.denoise)
+    return prepare(image, mask, rim, None, rig.rim_range_px, features, rig.srgb, blur)
 
 
 def _finish_u8(

@@ -22,6 +22,7 @@ from .adaptive import default_segmenter
 from .below import has_contact, recounted
 from .checks import line_shift_std, plausibility
 from .colour import linear_light
+from .denoise import sigma_factor
 from .fit import build_evidence, fit, rim_and_boundary_capacity
 from .hough import Circle, hough_rim
 from .model import end_point, measurements
@@ -79,12 +80,14 @@ class Prepared(eqx.Module):
     the halves so that the first frames of a recording, measured once with their own rims to
     find the recording's, are not segmented twice where their masks do not depend on the rim
     (``Segmenter.uses_rim``). ``features``: which features made the mask
-    (a ``FEATURES_*`` code), passed on to the :class:`SoftEstimate`."""
+    (a ``FEATURES_*`` code), passed on to the :class:`SoftEstimate`; ``blur_px``: the blur the
+    segmenter applied first (``Segmenter.blur_px``), which widens the sigmas."""
 
     mask: Float[Array, "H W"]
     outline: Outline
     choice: RimChoice
     features: Int[Array, ""]
+    blur_px: Float[Array, ""]
 
 
 def prepare(
@@ -95,6 +98,7 @@ def prepare(
     rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
     features: ArrayLike = FEATURES_UNKNOWN,
     srgb: bool | Float[Array, ""] = False,
+    blur_px: ArrayLike = 0.0,
 ) -> Prepared:
     """Outline of the mask, and the rim circle to measure with (``soft.rim.choose_circle``).
     ``features``: the code of the features that made ``mask`` (``Segmenter.features``; may be
@@ -115,7 +119,11 @@ def prepare(
 
     choice = choose_circle(outline, RecordingRim.per_frame() if rim is None else rim, own_rim, s)
     return Prepared(
-        mask=mask, outline=outline, choice=choice, features=jnp.asarray(features, jnp.int32)
+        mask=mask,
+        outline=outline,
+        choice=choice,
+        features=jnp.asarray(features, jnp.int32),
+        blur_px=jnp.asarray(blur_px, mask.dtype),
     )
 
 
@@ -184,6 +192,7 @@ def finish(
     stepped_out = stepped & ~contact & (prepared.features == FEATURES_INTENSITY)
     check = plausibility(image, mask, p, ev, contact, stepped_out)
     std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
+    std = std * sigma_factor(prepared.blur_px)
     std = jnp.sqrt(std**2 + line_shift_std(p, check, wheel_radius_mm) ** 2)
     measured = jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code)
     # With the recording's rim, a soil boundary inside it is evidence enough of the wheel.
@@ -308,6 +317,7 @@ def measure(
         rim=rim,
         features=segmenter.features(image, rect),
         srgb=srgb,
+        blur_px=segmenter.blur_px(image, rect),
     )
 
 
@@ -324,6 +334,7 @@ def measure_from_mask(
     features: ArrayLike = FEATURES_UNKNOWN,
     srgb: bool | Float[Array, ""] = False,
     recount_in_disc: bool = False,
+    blur_px: ArrayLike = 0.0,
 ) -> SoftEstimate:
     """Everything after segmentation, from a soft wheel mask in [0, 1] (1 = wheel) and its image.
 
@@ -331,10 +342,11 @@ def measure_from_mask(
     JAX (``sinkjax.torch``) supplies its own mask here. The image is still needed: the
     outline is located on its colours. Keyword arguments as for :func:`measure`; ``features``
     (the estimate's ``features``): the ``FEATURES_*`` code of what made the mask, if known;
-    ``recount_in_disc`` (static): as for :func:`finish`.
+    ``recount_in_disc`` (static): as for :func:`finish`; ``blur_px``: the blur the segmenter
+    applied to the image first (``Segmenter.blur_px``), which widens the sigmas.
     Raises ValueError if the shapes disagree.
     """
-    prepared = prepare(image, mask, rim, settings, rim_range_px, features, srgb)
+    prepared = prepare(image, mask, rim, settings, rim_range_px, features, srgb, blur_px)
     return finish(
         image,
         prepared,

@@ -96,7 +96,7 @@ def colour_box(image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, " 4"]:
     def mostly_clipped(box: Int[Array, " 4"]) -> Array:
         # The share over the box's grid of RECT_SAMPLES^2 pixels: a few hundred gathers, not
         # a pass over the whole image per box.
-        return jnp.mean(unclipped(_rect_values(image, box))) < MIN_UNCLIPPED_SHARE
+        return jnp.mean(unclipped(rect_values(image, box))) < MIN_UNCLIPPED_SHARE
 
     half = jnp.stack(
         [r[0] - r[2] // 2, r[1] - r[3] // 2, r[2] + r[2] // 2 * 2, r[3] + r[3] // 2 * 2]
@@ -122,7 +122,7 @@ def colour_weight(
         w = box_weight(box, height, width, image.dtype) * unclipped(image)
         return jnp.where(jnp.sum(w) > 0, w, plain)
 
-    seen = jnp.any(unclipped(_rect_values(image, r)) < 1.0)
+    seen = jnp.any(unclipped(rect_values(image, r)) < 1.0)
     return jax.lax.cond(seen, unclipped_only, lambda: plain)
 
 
@@ -238,17 +238,17 @@ RECT_SAMPLES = 32
 MIN_SPREAD = 0.02
 
 
-def _rect_values(q: Float[Array, "H W C"], rect: Rect) -> Float[Array, "N C"]:
-    # A RECT_SAMPLES^2 grid of nearest pixels spread evenly over the rectangle, static or traced
-    # alike (a traced rectangle has no static size; a median over a masked whole image would sort
-    # every pixel of the frame, 100+ ms at 640x480 on a CPU). A rectangle reaching beyond the
-    # image samples its edge pixels there.
+def rect_values(q: Float[Array, "H W C"], rect: Rect, dx: int = 0) -> Float[Array, "N C"]:
+    """A RECT_SAMPLES^2 grid of nearest pixels spread evenly over the rectangle, static or traced
+    alike (a traced rectangle has no static size; a median over a masked whole image would sort
+    every pixel of the frame, 100+ ms at 640x480 on a CPU). A rectangle reaching beyond the
+    image samples its edge pixels there. ``dx``: the pixels that many columns to the right."""
     height, width = q.shape[:2]
     r = jnp.asarray(rect, jnp.int32)
     x0, y0, w0, h0 = (r[i] for i in range(4))
     dt = q.dtype
     frac = (jnp.arange(RECT_SAMPLES, dtype=dt) + 0.5) / RECT_SAMPLES
-    xs = jnp.clip(x0 + jnp.floor(frac * w0.astype(dt)).astype(r.dtype), 0, width - 1)
+    xs = jnp.clip(x0 + jnp.floor(frac * w0.astype(dt)).astype(r.dtype) + dx, 0, width - 1)
     ys = jnp.clip(y0 + jnp.floor(frac * h0.astype(dt)).astype(r.dtype), 0, height - 1)
     return q[ys[:, None], xs[None, :]].reshape(-1, q.shape[-1])
 
@@ -282,8 +282,8 @@ def reference_mask(
     q = chromaticity(blurred)
     n = max(2, round(EDGE_ROWS_FRACTION * height))
     box = colour_box(image, rect) if box is None else box
-    use = unclipped(_rect_values(image, box))
-    wheel = wheel_colour(_rect_values(q, box), jnp.where(jnp.any(use > 0), use, 1.0))
+    use = unclipped(rect_values(image, box))
+    wheel = wheel_colour(rect_values(q, box), jnp.where(jnp.any(use > 0), use, 1.0))
     d_w = jnp.sum((q - wheel.centre[None, None, :]) ** 2, axis=-1)
     out = jnp.ones(image.shape[:2], image.dtype)
     for strip in (q[:n], q[-n:]):

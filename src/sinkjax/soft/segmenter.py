@@ -72,6 +72,13 @@ class Segmenter(eqx.Module):
         del features
         return False
 
+    def blur_px(self, image: Float[Array, "H W 3"], rect: Rect) -> Float[Array, ""]:
+        """The Gaussian blur (sigma, px) this segmenter applied to ``image`` before segmenting
+        it, beyond the mask's own smoothing: the estimate's sigma widens with it
+        (:func:`~sinkjax.soft.denoise.sigma_factor`). 0 unless a segmenter overrides it."""
+        del rect
+        return jnp.zeros((), image.dtype)
+
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
         """Which features separate wheel from soil in this frame (a ``FEATURES_*`` code of
         :data:`FEATURE_CHOICES`): jit-able and vmap-able like the mask. The soft method reports
