@@ -76,6 +76,7 @@ from .grey_features import (
     chromaticity_distance,
     face_texture as face_texture,
     pooled_texture as pooled_texture,
+    safe_norm,
     texture as texture,
 )
 from .histogram import (
@@ -116,9 +117,7 @@ def wheel_chroma(
     total = jnp.maximum(jnp.sum(weight), 1.0)
     c = jnp.sum(weight * s * jnp.cos(rad)) / total
     d = jnp.sum(weight * s * jnp.sin(rad)) / total
-    n2 = c * c + d * d
-    pos = n2 > 1e-24
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, n2, 1.0)), 0.0)
+    return safe_norm(c, d)
 
 
 class AdaptiveSegmenter(Segmenter):

@@ -90,8 +90,8 @@ def face_texture(tex: Float[Array, "H W"], weight: Float[Array, "H W"]) -> Float
     return jnp.exp(log_quantile(hist, centres, 0.95))
 
 
-def _norm(a1: Array, a2: Array) -> Array:
-    # |(a1, a2)| with a finite gradient at 0 (double where).
+def safe_norm(a1: Array, a2: Array) -> Array:
+    """|(a1, a2)| with a finite gradient at 0 (double where)."""
     d2 = a1 * a1 + a2 * a2
     pos = d2 > 1e-24
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, d2, 1.0)), 0.0)
@@ -106,7 +106,7 @@ def chroma_distance(
     d1 = q1 - jnp.sum(weight * q1) / total
     d2 = q2 - jnp.sum(weight * q2) / total
     spread = jnp.sqrt(jnp.sum(weight * (d1 * d1 + d2 * d2)) / total + 1e-12)
-    return _norm(d1, d2), spread
+    return safe_norm(d1, d2), spread
 
 
 def chromaticity_distance(
