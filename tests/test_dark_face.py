@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_adaptive import _iou, _masks_with_and_without_rim
+from test_adaptive import _iou, _masks_with_and_without_rim, _with_rim
 
 from sinkjax import synth
 from sinkjax.soft.adaptive import AdaptiveSegmenter
@@ -19,6 +19,7 @@ from sinkjax.soft.dark_face import (
     face_plane,
     face_valley,
 )
+from sinkjax.synth.layers import SOIL, WHEEL_LAYERS, coverage
 
 
 def _grid(h: int = 60, w: int = 80) -> tuple[np.ndarray, np.ndarray]:
@@ -104,6 +105,40 @@ def test_black_wheel_mask_with_rim_against_rendered_truth() -> None:
             else:
                 gains.append(after - before)
     assert sorted(gains)[-3] > 0.15 and np.mean(gains) > 0.05
+
+
+def test_a_sky_lit_shadow_on_grey_soil_is_not_taken_for_a_black_wheel() -> None:
+    """A black wheel's shadow on the soil inside its rim is lit by the tinted sky alone: its
+    chroma (0.02-0.05) is several times the wheel's own, which is only the wheel's few percent of
+    albedo times that tint. The chroma radius's floor (3 x 0.008, former 3 x 0.012; the
+    sigmoid's width 0.0053, former 0.008) parts them: against the renderer's exact masks over
+    twelve plain black-wheel frames, the soil inside the rim called wheel falls to under a tenth
+    (the frame with most: 216 px -> under 10), and the wheel inside the rim lost to the tighter
+    radius stays under 0.5 % of it."""
+    former = AdaptiveSegmenter(chroma_floor=0.012, t_chroma_dark=0.008)
+    with_former = jax.jit(lambda x, r, d: former.with_rim(x, r, d))
+    soil_as_wheel, wheel_missed, wheel_px = np.zeros(2), np.zeros(2), 0
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        sc = synth.recording_scenes(rng, 1, preset="black_wheel", width=320, height=240)[0]
+        img, t = synth.render(sc, seed)
+        x = jnp.asarray(img, jnp.float64) / 255.0
+        rect = jnp.asarray(synth.rig_for(sc).confidence_rect)
+        disc = tuple(jnp.asarray(v) for v in (t.center_x_px, t.center_y_px, t.radius_px))
+        cov = coverage(sc)
+        wheel = cov[..., list(WHEEL_LAYERS)].sum(-1) > 0.5
+        yy, xx = np.mgrid[: img.shape[0], : img.shape[1]]
+        inside = (xx - t.center_x_px) ** 2 + (yy - t.center_y_px) ** 2 < t.radius_px**2
+        soil_in, wheel_in = (cov[..., SOIL] > 0.5) & inside, wheel & inside
+        masks = [np.asarray(f(x, rect, disc)) > 0.5 for f in (with_former, _with_rim)]
+        counts = np.array([(m & soil_in).sum() for m in masks])
+        if seed == 0:
+            assert counts[0] > 150 and counts[1] < 10, counts
+        soil_as_wheel += counts
+        wheel_missed += [(~m & wheel_in).sum() for m in masks]
+        wheel_px += int(wheel_in.sum())
+    assert soil_as_wheel[1] < 0.1 * soil_as_wheel[0], soil_as_wheel
+    assert wheel_missed[1] - wheel_missed[0] < 0.005 * wheel_px, (wheel_missed, wheel_px)
 
 
 @pytest.mark.parametrize(

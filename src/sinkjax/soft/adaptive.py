@@ -25,10 +25,12 @@ averaged: noise averages out, a real tint does not) says which case a frame is:
     wheel's population and the background's nearest below it, where the fewest pixels are
     (searched between ``0.1 I_w`` and ``p_d_int * I_w``).
   - Chroma: the opponent colour (R - (G + B)/2, sqrt(3)/2 (G - B)) stays within ``p_chroma``
-    times a floor of the rectangle's spread of it (brown soil, however dark, has chroma). For a
-    metal wheel, the chroma divided by the intensity (chromaticity; ``soft.grey_features``): the
-    wheel's shadow on brown soil is nearly as grey as the wheel in chroma, not in chromaticity. A
-    clipped pixel (a channel at the sensor's top) has lost its chroma and is not judged by it.
+    times a floor of the rectangle's spread of it (brown soil, however dark, has chroma; so has a
+    black wheel's shadow on grey soil, lit by the tinted sky alone, where the wheel's own chroma
+    is only its albedo's few percent of that tint). For a metal wheel, the chroma divided by the
+    intensity (chromaticity; ``soft.grey_features``): the wheel's shadow on brown soil is nearly
+    as grey as the wheel in chroma, not in chromaticity. A clipped pixel (a channel at the
+    sensor's top) has lost its chroma and is not judged by it.
   - Texture: the local intensity spread after removing the window's own plane (shading is a
     gradient, not texture), the smallest of four one-sided windows (so that an edge does not
     count as texture on either side), stays under ``p_tex`` times the rectangle's (sand has
@@ -128,8 +130,11 @@ class AdaptiveSegmenter(Segmenter):
     (a black wheel's intensity threshold ``p_a_int * I_w + int_floor`` where no valley is
     used), ``p_valley`` (a factor on a threshold found in the histogram's valley, a metal wheel's
     or a black one's; 1 by default), ``t_int`` (the intensity sigmoid's width, relative),
-    ``p_chroma`` and ``chroma_floor`` (the chroma radius is
-    ``p_chroma * max(rectangle chroma spread, chroma_floor)``, RGB units), ``t_chroma``,
+    ``p_chroma`` and ``chroma_floor`` (a black wheel's chroma radius is
+    ``p_chroma * max(rectangle chroma spread, chroma_floor)``, RGB units), ``metal_chroma_floor``
+    (a metal wheel's chromaticity radius is ``p_chroma * max(rectangle chromaticity spread,
+    metal_chroma_floor / I_w)``), ``t_chroma`` (its sigmoid's width; a black wheel's:
+    ``t_chroma_dark``),
     ``p_tex`` and ``tex_floor`` (texture limit ``p_tex * max(rectangle texture, tex_floor)``,
     intensity units), ``t_tex``, ``p_tex_rim`` (with the rim known, beyond it below its centre:
     at most ``p_tex_rim`` times the face's 95th percentile). Not differentiable:
@@ -145,8 +150,17 @@ class AdaptiveSegmenter(Segmenter):
     p_valley: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
     t_int: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.08)
     p_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
-    chroma_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.012)
+    # A black wheel's chroma radius at least 3 x 0.008: the shadow it casts on the soil, lit by
+    # the sky alone, is tinted by it (opponent chroma 0.02-0.05 where the wheel's own stays under
+    # 0.01), and 3 x 0.012 let half of it pass as wheel; at 0.004 the wheel's own chroma (glows,
+    # tinted shading, JPEG's 8 px chroma blocks) fails it (experiments/black_wheels.py).
+    chroma_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.008)
+    metal_chroma_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.012)
     t_chroma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.008)
+    # The black wheel's chroma sigmoid keeps its former width-to-radius ratio (0.008 to
+    # 3 x 0.012): at 0.008 to 3 x 0.008, its product with the intensity sigmoid pulls the mask's
+    # 0.5 level into the wheel at its edge against a tinted sky.
+    t_chroma_dark: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.024 * 2 / 9)
     p_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
     tex_floor: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.006)
     t_tex: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.002)
@@ -230,10 +244,10 @@ class AdaptiveSegmenter(Segmenter):
         dist_r, spread_r = chromaticity_distance(q1, q2, intensity, weight)
         radius_q = self.p_chroma * jnp.maximum(spread_q, self.chroma_floor)
         lit = jnp.maximum(i_w, 1e-3)  # the face's intensity: chromaticity units to RGB units
-        radius_r = self.p_chroma * jnp.maximum(spread_r, self.chroma_floor / lit)
+        radius_r = self.p_chroma * jnp.maximum(spread_r, self.metal_chroma_floor / lit)
         m_chroma = jnp.where(
             dark,
-            jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma),
+            jax.nn.sigmoid((radius_q - dist_q) / self.t_chroma_dark),
             jax.nn.sigmoid((radius_r - dist_r) * lit / self.t_chroma),
         )
         # A clipped channel (a highlight, an over-exposed face) leaves no chroma to judge.
