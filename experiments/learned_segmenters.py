@@ -10,8 +10,12 @@ recordings never trained on. Methods, each measured on the held-out frames by
 - thresholds calibrated per recording: ``sinkjax.calibrate`` on that recording's labelled frames
   (unseen recordings have no labels, so they keep the default);
 - ColourMLP and ConvSegmenter: ONE model each, trained on the labelled frames of all seen
-  recordings (a third of them held back to stop early on), started by imitating the rigs'
-  threshold masks, then trained through the fit (``sinkjax.learn.train``).
+  recordings (a third of them held back to stop early on). Each is residual (the default
+  segmenter's log-odds plus the network's correction, which starts at zero; ``--scratch``: the
+  network alone, first fitted by pixel cross-entropy to the renderer's exact wheel masks of
+  those labelled frames, ``sinkjax.learn.imitate``; ``--imitate-masks`` does that for the
+  residual models too), trained through the fit on the frame labels alone, as ``sinkjax train``
+  does (``sinkjax.learn.train``; ``--pixel-weight`` adds the exact masks' cross-entropy).
 
 Also: training time, and inference time per 640x480 frame (the whole soft method, steady state)
 with each segmenter relative to the thresholds. Developed on seed 7 (``--quick``); the committed
@@ -116,6 +120,24 @@ def main() -> None:
     ap.add_argument("--test", type=int, default=6)
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--calibration-steps", type=int, default=20)
+    ap.add_argument(
+        "--scratch",
+        action="store_true",
+        help="networks on their own, started by imitating the exact masks (default: residual "
+        "models that correct the default segmenter, started where it is)",
+    )
+    ap.add_argument(
+        "--imitate-masks",
+        action="store_true",
+        help="fit the residual models to the exact masks before training (--scratch always "
+        "does; default: start where the default segmenter is, as sinkjax train does)",
+    )
+    ap.add_argument(
+        "--pixel-weight",
+        type=float,
+        default=0.0,
+        help="weight of the exact-mask cross-entropy in training (default 0: frame labels only)",
+    )
     ap.add_argument("--out-dir", type=Path, default=RESULTS)
     args = ap.parse_args()
     if args.quick:
@@ -143,7 +165,9 @@ def main() -> None:
     for kind in ("mlp", "cnn"):
         t = time.perf_counter()
         batches = frame_batches(fit)
-        seg, _ = imitate(build(kind, key=args.seed), batches, steps=150)
+        seg = build(kind, key=args.seed, residual=int(not args.scratch))
+        if args.scratch or args.imitate_masks:
+            seg, _ = imitate(seg, batches, steps=150)
         res = train(
             seg,
             batches,
@@ -152,6 +176,7 @@ def main() -> None:
             batch_size=6,
             eval_every=5,
             patience=3,
+            pixel_weight=args.pixel_weight,
             seed=args.seed,
             progress=True,
         )
@@ -185,10 +210,31 @@ def main() -> None:
         "seconds": time.perf_counter() - t0,
     }
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    stem = "learned_segmenters_quick" if args.quick else "learned_segmenters"
+    stem = "learned_segmenters" + "".join(
+        f"_{name}"
+        for name, on in (
+            ("quick", args.quick),
+            ("scratch", args.scratch),
+            ("masks", args.imitate_masks and not args.scratch),
+        )
+        if on
+    )
     (args.out_dir / f"{stem}.json").write_text(json.dumps(out, indent=1, default=float))
     (args.out_dir / f"{stem}.md").write_text(report(out))
     print(report(out))
+
+
+def _start(c: dict) -> str:
+    if c.get("scratch"):
+        return "networks alone, first fitted to the exact masks"
+    if c.get("imitate_masks"):
+        return "residual (default segmenter + correction), first fitted to the exact masks"
+    return "residual (default segmenter + correction), started where the default is"
+
+
+def _pixel(c: dict) -> str:
+    w = c.get("pixel_weight", 0.0)
+    return f" plus {w} x the exact masks' cross-entropy" if w else ""
 
 
 def report(out: dict) -> str:
@@ -199,7 +245,8 @@ def report(out: dict) -> str:
         f"Seed {c['seed']}; {c['width']}x{c['height']}; {len(HARD_PRESETS)} hard presets x "
         f"{c['seen']} seen recording(s) ({c['labelled']} labelled + {c['test']} held-out frames) "
         f"and x {c['unseen']} unseen recording(s) ({c['test']} frames). One MLP and one CNN for "
-        f"all recordings, {c['steps']} Adam steps at most. Errors: median relative sinkage error "
+        f"all recordings, {_start(c)}, {c['steps']} Adam steps at most on the frame labels"
+        f"{_pixel(c)}. Errors: median relative sinkage error "
         f"of contact frames; {sm.RULE}.",
         "",
         "| method | seen, held-out: median % | failed % | worst recording % | unseen: median % "

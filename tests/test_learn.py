@@ -18,7 +18,8 @@ import pytest
 
 from sinkjax import learn as L
 from sinkjax.app.cli import main
-from sinkjax.rig import save_rig
+from sinkjax.rig import SegmentationParams, save_rig
+from sinkjax.soft.adaptive import default_segmenter
 from sinkjax.soft.batch import estimate_batch
 from sinkjax.soft.estimator import measure_from_mask
 from sinkjax.soft.segmenter import Segmenter
@@ -60,10 +61,19 @@ def _directional(seg: L.LearnedSegmenter, batch: L.FrameBatch, d, eps: float) ->
     return (loss(eps) - loss(-eps)) / (2 * eps)
 
 
+def _residual(kind: str) -> L.LearnedSegmenter:
+    """A residual model whose correction is small but not zero (so that every layer has a
+    gradient): its head's weights drawn at 1 % of their usual scale."""
+    seg = L.build(kind, key=2, residual=1)
+    head = seg.weights[-1] if kind == "mlp" else seg.head[0]
+    small = 0.01 * jax.random.normal(jax.random.PRNGKey(5), head.shape, head.dtype)
+    return eqx.tree_at(lambda s: s.weights[-1] if kind == "mlp" else s.head[0], seg, small)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["mlp", "cnn"])
+@pytest.mark.parametrize("kind", ["mlp", "cnn", "mlp-residual", "cnn-residual"])
 def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> None:
-    seg = started(kind)
+    seg = _residual(kind.split("-")[0]) if kind.endswith("residual") else started(kind)
     batch = L.frame_batches([recording()])[0]
     as64 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64) if eqx.is_array(x) else x, seg)
     value, grad, seen = L.loss_and_grad(as64, batch, 0.1, 2.0)
@@ -92,9 +102,12 @@ def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> N
 def test_save_load_round_trip(tmp_path: Path) -> None:
     image = jnp.asarray(recording().frames.images[0], jnp.float64) / 255.0
     rect = recording().rig.confidence_rect
-    for kind in ("mlp", "cnn"):
-        seg = L.build(kind, key=3, **({"hidden": 8} if kind == "mlp" else {"channels": 6}))
-        path = L.save_segmenter(tmp_path / f"{kind}.seg", seg, report={"steps": 7})
+    for kind, residual in (("mlp", 0), ("cnn", 0), ("mlp", 1), ("cnn", 1)):
+        width = {"hidden": 8} if kind == "mlp" else {"channels": 6}
+        seg = L.build(kind, key=3, residual=residual, **width)
+        if residual:  # a correction that is not zero, so that the comparison below can fail
+            seg = _residual(kind)
+        path = L.save_segmenter(tmp_path / f"{kind}{residual}.seg", seg, report={"steps": 7})
         back = L.load_segmenter(path)
         assert type(back) is type(seg) and back.hyper == seg.hyper
         for a, b in zip(
@@ -104,6 +117,33 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
         np.testing.assert_array_equal(np.asarray(seg(image, rect)), np.asarray(back(image, rect)))
         header = json.loads(path.read_bytes().split(b"\n", 1)[0])
         assert header["kind"] == kind and header["report"] == {"steps": 7}
+
+
+def test_a_new_residual_model_measures_what_the_default_method_measures() -> None:
+    """Its correction starts at zero: the mask is the default segmenter's (to the 1e-6 of its
+    clipped log-odds) and ``estimate_batch`` gives the default method's rows (to 5e-3 mm or
+    degree: rounding through the fit), rim and low-light blur included, on a hard recording
+    where the default method is far from perfect."""
+    rec = L.synthetic_recording(4, seed=7120, preset="hard_mix", width=W, height=H)
+    image = jnp.asarray(rec.frames.images[0], jnp.float64) / 255.0
+    rect = rec.rig.confidence_rect
+    default = default_segmenter(rec.rig.segmentation)
+    assert rec.rig.segmentation.as_dict() == SegmentationParams().as_dict()
+    names = list(rec.frames.names)
+    plain = estimate_batch(list(rec.frames.images), rec.rig, names)
+    for kind in ("mlp", "cnn"):
+        seg = L.build(kind, key=4, residual=1)
+        np.testing.assert_allclose(
+            np.asarray(seg(image, rect)), np.asarray(default(image, rect)), atol=1.1e-6
+        )
+        rows = estimate_batch(list(rec.frames.images), rec.rig, names, segmenter=seg)
+        assert [r.status for r in rows] == [r.status for r in plain]
+        for a, b in zip(rows, plain, strict=True):
+            for field in ("sinkage_mm", "theta1_deg", "theta2_deg", "sinkage_std_mm"):
+                x, y = getattr(a, field), getattr(b, field)
+                assert (x is None) == (y is None)
+                if x is not None:
+                    np.testing.assert_allclose(x, y, atol=5e-3)
 
 
 def test_bad_segmenter_files_give_clear_errors(tmp_path: Path) -> None:
@@ -201,11 +241,13 @@ def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path, capsys, st
     model = tmp_path / "model.seg"
     args = ["train", str(folder / "LABELS.csv"), "--out", str(model), "--steps", "2"]
     assert main([*args, "--held-out", "0", "--eval-every", "1"]) == 0
-    assert L.load_segmenter(model).kind == "mlp"
+    assert L.load_segmenter(model).kind == "mlp" and L.load_segmenter(model).residual
     out = tmp_path / "results.csv"
     capsys.readouterr()
     assert main(["estimate", str(folder), "--segmenter", str(model), "--out", str(out)]) == 0
     assert len(out.read_text().splitlines()) == 1 + len(truth)
-    assert f"segmenter: learned ({len(truth)} frames)" in capsys.readouterr().out.splitlines()
+    # A residual model (train's default) names the default segmenter's choice beneath it.
+    line = f"segmenter: learned+hue+saturation ({len(truth)} frames)"
+    assert line in capsys.readouterr().out.splitlines()
     (tmp_path / "bad.seg").write_bytes(b"junk")
     assert main(["estimate", str(folder), "--segmenter", str(tmp_path / "bad.seg")]) == 2

@@ -32,6 +32,12 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--segmenter", choices=KINDS, default="mlp", help="model kind (default: mlp)")
     p.add_argument("--out", required=True, metavar="FILE", help="segmenter file to write")
     p.add_argument(
+        "--scratch",
+        action="store_true",
+        help="the network alone, started by imitating the rigs' default masks (default: a "
+        "network that corrects the default segmenter, started where it is)",
+    )
+    p.add_argument(
         "--rig", metavar="RIG.toml", help="rig for the labels files that have no rig.toml beside"
     )
     p.add_argument("--steps", type=_positive_int, default=100, metavar="N", help="Adam steps (100)")
@@ -63,7 +69,7 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
         "--width",
         type=_positive_int,
         metavar="N",
-        help="hidden units (mlp, default 16) or channels (cnn, default 16)",
+        help="hidden units (mlp) or channels (cnn): default 8, or 16 with --scratch",
     )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="initialisation seed (0)")
     from ..app.cli_estimate import add_cache_option
@@ -72,7 +78,8 @@ def add_cli_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_cli(args: argparse.Namespace) -> int:
-    """``sinkjax train``: validate everything, imitate the default masks, train, save, report."""
+    """``sinkjax train``: validate everything, start from the default masks, train, save,
+    report."""
     from ..app.cli_estimate import setup_compile_cache
     from ..rig import RigError
 
@@ -99,8 +106,13 @@ def run_cli(args: argparse.Namespace) -> int:
     )
     batches, held_batches = frame_batches(training), frame_batches(held)
     setup_compile_cache(args)
-    seg, ce = imitate(build(args.segmenter, key=args.seed, **hyper), batches, seed=args.seed)
-    print(f"start: imitated the rigs' default masks (pixel cross-entropy {ce:.3f})")
+    start = build(args.segmenter, key=args.seed, residual=int(not args.scratch), **hyper)
+    if args.scratch:
+        seg, ce = imitate(start, batches, seed=args.seed)
+        print(f"start: imitated the rigs' default masks (pixel cross-entropy {ce:.3f})")
+    else:
+        seg = start
+        print("start: the default segmenter's mask, corrected by a network that starts at zero")
     result = train(
         seg,
         batches,

@@ -12,6 +12,7 @@ as no contact is measured again with the wheel below its outline counted inside 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -219,7 +220,16 @@ class SoftRecording:
             else "fractions of the image size; set rim_radius_px in the rig if the rim's radius "
             "is outside"
         )
-        return [frame_result(out, i, names[i], rig, searched) for i in range(len(images))]
+        rows = [frame_result(out, i, names[i], rig, searched) for i in range(len(images))]
+        if self.segmenter is None:
+            return rows
+        seg = self.segmenter
+        return [
+            r
+            if r.segmenter_features is None
+            else dataclasses.replace(r, segmenter_features=seg.features_label(r.segmenter_features))
+            for r in rows
+        ]
 
     def _estimates(self, images: list[np.ndarray], run: _Run) -> SoftEstimate:
         height, width = images[0].shape[:2]

@@ -90,6 +90,11 @@ class Segmenter(eqx.Module):
         del image, rect
         return jnp.asarray(FEATURES_LEARNED, jnp.int32)
 
+    def features_label(self, name: str) -> str:
+        """The run summary's name for a frame whose :meth:`features` code is called ``name``
+        (a :data:`FEATURE_CHOICES` value): that name, unless a segmenter says more."""
+        return name
+
 
 class ThresholdSegmenter(Segmenter):
     """The paper's H/S range test as a soft mask: exactly :func:`wheel_mask` with ``seg``.
