@@ -26,12 +26,14 @@ being out of a segmenter's sight) plus the network's correction, which also sees
 verdict as one more input. The correction's last layer starts at zero, so a new residual model
 measures what the default method measures, and training through the fit (which keeps the best
 model on held-out frames, its start included) can only move it where the labels say it is
-better. A residual model also takes the default's use of the recording's rim and its low-light
-blur (:meth:`with_rim`, :meth:`blur_px`).
+better. A residual model also takes the default's use of the recording's rim, its low-light
+blur and its choice of features (:meth:`with_rim`, :meth:`blur_px`, :meth:`features`), and the
+correction is scaled by :data:`CORRECTION_SCALE` so that it can overturn a sure verdict.
 
 Parameters are stored in float32 and cast to the image's dtype on use, so a model trained under
-x64 runs in float32 and the other way round. Start from :func:`build` (a random start) and
-:func:`sinkjax.learn.train.imitate` (a sensible start: the default mask).
+x64 runs in float32 and the other way round. Start from :func:`build` with ``residual=1`` (the
+default mask), or without it (a random start) and :func:`sinkjax.learn.train.imitate` (a sensible
+start: the default mask).
 """
 
 from __future__ import annotations
@@ -313,8 +315,8 @@ _CLASSES: dict[str, type[ColourMLP] | type[ConvSegmenter]] = {
 def build(kind: str, *, key: PRNGKeyArray | int = 0, **hyper: int) -> LearnedSegmenter:
     """A new segmenter of ``kind`` ("mlp" or "cnn") with random parameters from ``key``;
     ``hyper``: ``hidden=`` (mlp) or ``channels=`` (cnn), and ``residual=1`` for a model that
-    corrects the default segmenter (see the module docstring). Raises ValueError for an unknown kind
-    or hyper-parameter."""
+    corrects the default segmenter (see the module docstring). Raises ValueError for an unknown
+    kind or hyper-parameter."""
     if kind not in _CLASSES:
         raise ValueError(f"unknown segmenter kind {kind!r}; choose one of {', '.join(KINDS)}")
     if isinstance(key, int):
