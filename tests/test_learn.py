@@ -71,7 +71,9 @@ def _residual(kind: str) -> L.LearnedSegmenter:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["mlp", "cnn", "mlp-residual", "cnn-residual"])
+# The residual wrapper (base log-odds, its extra input, the scaled correction) is the same code
+# for both networks, and both networks are checked on their own: one residual case suffices.
+@pytest.mark.parametrize("kind", ["mlp", "cnn", "mlp-residual"])
 def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> None:
     seg = _residual(kind.split("-")[0]) if kind.endswith("residual") else started(kind)
     batch = L.frame_batches([recording()])[0]
