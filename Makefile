@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
 export PIP_CONSTRAINT := $(CURDIR)/constraints.txt
 
-.PHONY: demo test lint typecheck pytest bench experiments experiments-quick clean setup setup-dev chromium
+.PHONY: demo test test-heavy test-all lint typecheck pytest pytest-heavy bench experiments experiments-quick clean setup setup-dev chromium
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -41,11 +41,21 @@ typecheck: $(VENV)/.dev
 	$(VENV)/bin/mypy
 
 # worksteal: a worker with nothing left takes queued tests from the other (conftest puts the
-# slow ones first).
+# slow ones first). `make test` (under 15 minutes on 2 cores) leaves out the tests marked
+# heavy: the end-to-end compiles of the whole method (a calibration, a training run, the
+# experiments' smoke run, finite-difference gradients through the fit), about 35 CPU-minutes
+# between them; `make test-heavy` runs those, `make test-all` both; CI (.ci/run) runs both.
 pytest: $(VENV)/.dev chromium
-	$(VENV)/bin/pytest -n 2 --dist worksteal -q --durations=15
+	$(VENV)/bin/pytest -n 2 --dist worksteal -q --durations=15 -m "not heavy"
+
+pytest-heavy: $(VENV)/.dev chromium
+	$(VENV)/bin/pytest -n 2 --dist worksteal -q --durations=15 -m heavy
 
 test: lint typecheck pytest
+
+test-heavy: pytest-heavy
+
+test-all: test pytest-heavy
 
 bench: $(VENV)/.dev
 	$(PY) experiments/bench.py

@@ -303,11 +303,15 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The test files with a test marked ``slow`` first, each file's tests together and in
-    order (so a module-scoped fixture is made once): with ``--dist worksteal`` (make test) the
-    workers start on the long tests and share out the short ones at the end, rather than one
-    worker finishing a long test while the other has nothing left to do."""
-    slow = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    """The test files with a test marked ``slow`` or ``heavy`` first, each file's tests together
+    and in order (so a module-scoped fixture is made once): with ``--dist worksteal`` (make
+    test) the workers start on the long tests and share out the short ones at the end, rather
+    than one worker finishing a long test while the other has nothing left to do."""
+    slow = {
+        item.path
+        for item in items
+        if item.get_closest_marker("slow") is not None or item.get_closest_marker("heavy")
+    }
     items.sort(key=lambda item: item.path not in slow)
 
 

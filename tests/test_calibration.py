@@ -716,6 +716,7 @@ def cli_run(recording: Path) -> tuple[Path, str]:
     return out, buf.getvalue()
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_cli_writes_a_complete_calibrated_rig(recording: Path, cli_run: tuple[Path, str]) -> None:
     out, printed = cli_run
@@ -730,6 +731,7 @@ def test_cli_writes_a_complete_calibrated_rig(recording: Path, cli_run: tuple[Pa
     assert "calibrated by `sinkjax calibrate LABELS.csv`" in out.read_text(encoding="utf-8")
 
 
+@pytest.mark.heavy
 def test_calibration_lowers_the_loss_deterministically(
     recording: Path, cli_run: tuple[Path, str]
 ) -> None:
@@ -766,6 +768,7 @@ def test_loss_measures_the_labelled_frames_as_estimate_does(recording: Path) -> 
     assert np.max(np.abs(np.asarray(own.values) - np.asarray(held.values))) > 1e-3
 
 
+@pytest.mark.heavy
 def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Path, str]) -> None:
     rig = load_rig(recording / "rig.toml")
     frames = C.read_labels(recording / "LABELS.csv", rig)
@@ -801,6 +804,7 @@ def test_gradient_matches_finite_differences(recording: Path, cli_run: tuple[Pat
     assert checked >= 4
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     recording: Path, cli_run: tuple[Path, str]
@@ -864,6 +868,7 @@ def test_frame_gradient_is_finite_where_plain_sqrt_weights_are_not(
     assert checked >= 3
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_calibrated_rig_round_trips(recording: Path, cli_run: tuple[Path, str]) -> None:
     from sinkjax.rig import save_rig

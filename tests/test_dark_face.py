@@ -141,6 +141,7 @@ def test_a_sky_lit_shadow_on_grey_soil_is_not_taken_for_a_black_wheel() -> None:
     assert wheel_missed[1] - wheel_missed[0] < 0.005 * wheel_px, (wheel_missed, wheel_px)
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize(
     ("preset", "seed", "leaves"),
     [

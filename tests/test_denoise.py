@@ -103,6 +103,7 @@ def test_dim_wheel_mask_against_rendered_truth() -> None:
     assert np.mean(gains) > 0.02, gains
 
 
+@pytest.mark.heavy
 def test_sigma_widens_with_the_blur() -> None:
     """The estimate of a blurred frame carries the blur's sigma factor (1 without a blur): the
     same mask measured as if unblurred has smaller sigmas, by at most that factor (the line's

@@ -24,6 +24,7 @@ def _numbers(results) -> list[tuple]:
     return [(r.status, r.sinkage_mm, r.theta1_deg, r.theta2_deg, r.radius_px) for r in results]
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> None:
     image, rig = _frame()

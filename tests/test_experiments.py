@@ -50,6 +50,7 @@ def _table_rows(text: str) -> list[list[str]]:
     return rows
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_run_all_quick_writes_every_table_and_figure(tmp_path: Path) -> None:
     out, cache = tmp_path / "results", tmp_path / "cache"

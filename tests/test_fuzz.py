@@ -523,6 +523,7 @@ def _soft_cases() -> list[tuple[str, bytes, set[str]]]:
 SOFT_CASES = _soft_cases()
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_real_soft_estimator_on_awkward_frames(tmp_path):
     paths = []

@@ -72,8 +72,16 @@ def _residual(kind: str) -> L.LearnedSegmenter:
 
 @pytest.mark.slow
 # The residual wrapper (base log-odds, its extra input, the scaled correction) is the same code
-# for both networks, and both networks are checked on their own: one residual case suffices.
-@pytest.mark.parametrize("kind", ["mlp", "cnn", "mlp-residual"])
+# for both networks, and both networks are checked on their own: one residual case suffices
+# (in `make test`; the two plain networks' cases, over a minute each, in `make test-heavy`).
+@pytest.mark.parametrize(
+    "kind",
+    [
+        pytest.param("mlp", marks=pytest.mark.heavy),
+        pytest.param("cnn", marks=pytest.mark.heavy),
+        "mlp-residual",
+    ],
+)
 def test_frame_loss_gradient_matches_finite_differences(kind: str, started) -> None:
     seg = _residual(kind.split("-")[0]) if kind.endswith("residual") else started(kind)
     batch = L.frame_batches([recording()])[0]
@@ -121,6 +129,7 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
         assert header["kind"] == kind and header["report"] == {"steps": 7}
 
 
+@pytest.mark.heavy
 def test_a_new_residual_model_measures_what_the_default_method_measures() -> None:
     """Its correction starts at zero: the mask is the default segmenter's (to the 1e-6 of its
     clipped log-odds) and ``estimate_batch`` gives the default method's rows (to 5e-3 mm or
@@ -186,6 +195,7 @@ def test_bad_segmenter_files_give_clear_errors(tmp_path: Path) -> None:
         assert name
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_training_a_few_steps_lowers_the_loss(started) -> None:
     batches = L.frame_batches([recording()])
@@ -204,6 +214,7 @@ def test_training_a_few_steps_lowers_the_loss(started) -> None:
     assert L.score(res.segmenter, batches).loss == pytest.approx(res.train_after.loss)
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_estimate_batch_and_cli_use_a_saved_segmenter(tmp_path: Path, capsys, started) -> None:
     rec = recording()

@@ -133,6 +133,7 @@ def test_first_frames_are_segmented_again_when_the_mask_uses_the_rim(rendered) -
     assert changed >= 1
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_gradients_pass_through_a_fixed_recording_rim(rendered) -> None:
     """Calibration differentiates through the fit with the rim held: finite, and equal to a

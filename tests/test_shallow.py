@@ -241,6 +241,7 @@ def test_a_dip_counts_as_contact_only_at_the_bottom(dip_at_deg: float, contact: 
     assert (int(jnp.sum(inside)) >= 4) == contact
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_gradients_are_finite_on_a_shallow_frame() -> None:
     image, _ = _frame(CY + R - 0.7)

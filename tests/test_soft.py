@@ -80,6 +80,7 @@ def test_overlay_ends_are_the_rendered_contact_points(travel: str) -> None:
     assert measured >= 2
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_jit_equals_eager_and_vmap_equals_loop(rendered) -> None:
     images, _, rig = rendered("clean", n=2)

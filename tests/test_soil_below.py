@@ -93,6 +93,7 @@ def test_counted_inside_the_disc_is_a_column_sum() -> None:
     assert np.all(np.asarray(got.wheel_below_px)[on_line] < 0.5)
 
 
+@pytest.mark.heavy
 def test_soil_taken_for_wheel_below_the_rim_keeps_the_contact() -> None:
     # The frame's own rim (no recording rim): the recording rim's mask repairs (soft.shadow_cut
     # cuts a mask that spills below the rim) would remove the band before the outline is read.
@@ -116,6 +117,7 @@ def test_soil_taken_for_wheel_below_the_rim_keeps_the_contact() -> None:
     assert _row(FEATURES_HUE_SAT).sinkage_mm == 0.0
 
 
+@pytest.mark.heavy
 def test_a_padded_batch_is_recounted_alike(monkeypatch: pytest.MonkeyPatch) -> None:
     # An accelerator's path (soft.batch: padded batches, vmapped): the same row as frame by
     # frame, for the frame recounted and the padding's copies of it.

@@ -283,6 +283,7 @@ def reference(frames) -> np.ndarray:
     return np.asarray(fn(jnp.asarray(imgs)))
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_bridge_from_mask(frames, reference) -> None:
     """One compiled bridge (images and masks, batch 2), several checks; compiling dominates.
@@ -346,6 +347,7 @@ def test_bridge_from_mask(frames, reference) -> None:
     assert torch.autograd.gradcheck(from_params, params, eps=1e-6, atol=1e-2, rtol=1e-2)
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_bridge_from_image(frames) -> None:
     """measure_torch without masks: JAX segments (``wheel_mask``: the paper's band and the

@@ -55,6 +55,7 @@ def _loss(seg: TorchColourSegmenter) -> torch.Tensor:
     return label_loss(est.values, est.status, targets)
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_torch_frame_loss_gradient_matches_finite_differences(
     started: TorchColourSegmenter,
@@ -91,6 +92,7 @@ def test_torch_frame_loss_gradient_matches_finite_differences(
         np.testing.assert_allclose(ad, fd, rtol=1e-2, atol=1e-6 * abs(fd) + 1e-8)
 
 
+@pytest.mark.heavy
 @pytest.mark.slow
 def test_torch_training_lowers_the_loss(started: TorchColourSegmenter) -> None:
     rig, images, _, targets = data()
