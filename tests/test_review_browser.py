@@ -41,6 +41,8 @@ ARGS = [
     "--disable-sync",
     "--no-first-run",
 ]
+# The README's screenshot: rewritten only where SINKJAX_UPDATE_SCREENSHOT=1 asks (a test run
+# leaves the working tree as it was); otherwise the page is shot into the test's own folder.
 SCREENSHOT = Path(__file__).resolve().parents[1] / "docs" / "review.png"
 
 
@@ -100,8 +102,11 @@ def test_review_page_measure_look_and_label_a_frame(
             assert page.locator("#series svg").count() == 3
             statuses = page.locator("#frames td.st").all_inner_texts()
             assert statuses.count("ok") >= 4, statuses
-            SCREENSHOT.parent.mkdir(exist_ok=True)
-            page.screenshot(path=str(SCREENSHOT))
+            update = os.environ.get("SINKJAX_UPDATE_SCREENSHOT") == "1"
+            shot = SCREENSHOT if update else tmp_path / "review.png"
+            shot.parent.mkdir(exist_ok=True)
+            page.screenshot(path=str(shot))
+            assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
             # a click on a point of the series opens its frame; arrow keys step through the list
             page.locator(f"#series svg >> nth=0 >> circle[data-index='{flat}']").click()
             assert page.inner_text("#framename").startswith(f"#{flat} ")
