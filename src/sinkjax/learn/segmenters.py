@@ -126,12 +126,17 @@ CORRECTION_SCALE = 8.0
 BASE_SCALE = 4.0
 
 
+def _base() -> Segmenter:
+    """A residual model's base: the default segmenter at the default thresholds."""
+    return default_segmenter(SegmentationParams())
+
+
 def base_logits(
     image: Float[Array, "H W 3"], rect: Rect, disc: Disc | None = None
 ) -> Float[Array, "H W"]:
     """Log-odds of the default segmenter's mask with the default thresholds (with the
     recording's rim ``disc`` where known)."""
-    seg = default_segmenter(SegmentationParams())
+    seg = _base()
     m = seg(image, rect) if disc is None else seg.with_rim(image, rect, disc)
     m = jnp.clip(m, BASE_EPS, 1.0 - BASE_EPS)
     return jnp.log(m) - jnp.log1p(-m)
@@ -212,14 +217,14 @@ class LearnedSegmenter(Segmenter):
         return jax.nn.sigmoid(self.logits(image, rect, disc))
 
     def uses_rim(self, features: int) -> bool:
-        return self.residual and default_segmenter(SegmentationParams()).uses_rim(features)
+        return self.residual and _base().uses_rim(features)
 
     def features(self, image: Float[Array, "H W 3"], rect: Rect) -> Int[Array, ""]:
         """``learned``; a residual model reports the features its base chose, since the soft
         method's rules for a wheel without colour (soft.below, soft.soil_step) go by them."""
         if not self.residual:
             return super().features(image, rect)
-        return default_segmenter(SegmentationParams()).features(image, rect)
+        return _base().features(image, rect)
 
     def features_label(self, name: str) -> str:
         """``learned+`` the base's choice for a residual model (``learned+hue+saturation``)."""
@@ -229,7 +234,7 @@ class LearnedSegmenter(Segmenter):
         """A residual model's base blurs a noisy frame as the default segmenter does."""
         if not self.residual:
             return jnp.zeros((), image.dtype)
-        return default_segmenter(SegmentationParams()).blur_px(image, rect)
+        return _base().blur_px(image, rect)
 
     @property
     def n_parameters(self) -> int:
