@@ -116,3 +116,36 @@ def test_the_tests_flag_is_the_librarys_option() -> None:
     assert xla.FAST_COMPILE_OPTIONS == {name: value == "true"}
     if os.environ.get("SINKJAX_TEST_FAST_COMPILE") == "1":
         assert FAST_COMPILE_FLAG in os.environ["XLA_FLAGS"]
+
+
+def _newton_sqrt(a: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """sqrt(a) by Newton's method to 1e-12, and the iterations it took: a loop whose length
+    depends on the frame, like the fit's Levenberg-Marquardt loop."""
+
+    def step(c: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        x, k = c
+        return 0.5 * (x + a / x), k + 1
+
+    return jax.lax.while_loop(lambda c: jnp.abs(c[0] ** 2 - a) > 1e-12 * a, step, (a, 0))
+
+
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_map_frames_gives_each_frames_own_result(
+    monkeypatch: pytest.MonkeyPatch, lockstep: bool
+) -> None:
+    # One frame after another (a CPU) or vmapped (an accelerator): each frame's value, its
+    # derivative and the iterations its loop took; against NumPy's sqrt, d sqrt(a)/da =
+    # 1 / (2 sqrt(a)) and the loop run on that frame alone.
+    assert not xla.frames_in_lockstep()  # this machine: a CPU
+    monkeypatch.setattr(xla, "frames_in_lockstep", lambda: lockstep)
+    frames = jnp.asarray([2.0, 9.0, 1e6])
+
+    def one(a: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        root, k = _newton_sqrt(a)
+        return root, k, jax.jacfwd(lambda b: _newton_sqrt(b)[0])(a)
+
+    roots, iterations, grads = jax.jit(lambda f: xla.map_frames(one, f))(frames)
+    np.testing.assert_allclose(roots, np.sqrt([2.0, 9.0, 1e6]), rtol=1e-12)
+    np.testing.assert_allclose(grads, 0.5 / np.sqrt([2.0, 9.0, 1e6]), rtol=1e-9)
+    alone = [int(_newton_sqrt(a)[1]) for a in frames]
+    assert [int(k) for k in iterations] == alone and len(set(alone)) == 3

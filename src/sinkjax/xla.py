@@ -115,3 +115,27 @@ def filter_jit(fun: Callable[..., Any] | None = None, /, **kwargs: Any) -> Any:
         return filter_jit_(f, compiler_options=options or None, **kwargs)
 
     return _LazyJit(make, f)
+
+
+def frames_in_lockstep() -> bool:
+    """Whether a stack of frames is measured as one vmapped batch (accelerators) rather than
+    one frame after another (a CPU). Under ``vmap`` the fit's Levenberg-Marquardt loops of all
+    frames run in lockstep until the slowest converges and both sides of every branch run: on
+    a CPU frame by frame is faster (:func:`map_frames`). Decided when a function is traced."""
+    import jax
+
+    return jax.default_backend() != "cpu"
+
+
+def map_frames(fun: Callable[[Any], Any], frames: Any) -> Any:
+    """``fun`` of each frame of ``frames`` (a pytree whose leaves share a leading frame axis),
+    stacked: ``jax.vmap`` on an accelerator, ``jax.lax.map`` (one frame after another, each
+    loop stopping when its own frame converges) on a CPU. The same numbers either way (to
+    float rounding); jit-able, vmap-able and differentiable alike. Measured on the calibration
+    loss of 3 frames at 160x120, float64, one thread: the loss ran in 0.060 s against 0.131 s
+    vmapped and its gradient in 0.111 s against 0.260 s, traced and compiled in 0.8x the time."""
+    import jax
+
+    if frames_in_lockstep():
+        return jax.vmap(fun)(frames)
+    return jax.lax.map(fun, frames)

@@ -35,6 +35,7 @@ from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure
 from ..soft.rim import RecordingRim
 from ..soft.segmentation import Rect
 from ..status import Status
+from ..xla import map_frames
 from .augment import AugmentConfig, augment
 
 LOSS_SCALES = (1.0, 1.0, 1.0)  # 1 mm of sinkage weighs as much as 1 degree of angle
@@ -304,12 +305,11 @@ def frame_losses(
         rim=rim, srgb=rig.srgb,
     )  # fmt: skip
     if with_grad:
-        (losses, frames), grads = jax.vmap(
-            jax.value_and_grad(one, has_aux=True), in_axes=(None, 0, 0)
-        )(raw, images, targets)
+        both = jax.value_and_grad(one, has_aux=True)
+        (losses, frames), grads = map_frames(lambda it: both(raw, *it), (images, targets))
         finite = jnp.all(jnp.isfinite(grads), axis=1, keepdims=True)
         grad = jnp.sum(jnp.where(finite, grads, 0.0), axis=0) / n_cells
     else:
-        losses, frames = jax.vmap(one, in_axes=(None, 0, 0))(raw, images, targets)
+        losses, frames = map_frames(lambda it: one(raw, *it), (images, targets))
         grad = jnp.zeros_like(raw)
     return LossAndGrad(loss=jnp.sum(losses) / n_cells, grad=grad, frames=frames)

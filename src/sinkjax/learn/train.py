@@ -29,7 +29,7 @@ from ..calibration.loss import boundary_contrast, mask_frame_loss
 from ..soft.adaptive import default_segmenter
 from ..soft.checks import MAX_HALF_RING_DISAGREEMENT, ring_disagreement
 from ..status import Status
-from ..xla import filter_jit
+from ..xla import filter_jit, map_frames
 from .data import FrameBatch
 from .segmenters import LearnedSegmenter
 
@@ -115,9 +115,8 @@ def loss_and_grad(
     def one(p: LearnedSegmenter, row: FrameBatch) -> tuple[Array, Array]:
         return _frame(eqx.combine(p, static), row, pw, cw, rw)
 
-    (losses, seen), grads = jax.vmap(jax.value_and_grad(one, has_aux=True), in_axes=(None, 0))(
-        params, batch
-    )
+    both = jax.value_and_grad(one, has_aux=True)
+    (losses, seen), grads = map_frames(lambda row: both(params, row), batch)
     leaves = jax.tree_util.tree_leaves(grads)
     finite = jnp.all(
         jnp.stack([jnp.all(jnp.isfinite(g.reshape(g.shape[0], -1)), 1) for g in leaves]), 0
@@ -139,7 +138,7 @@ def loss_and_grad(
 def evaluate(seg: LearnedSegmenter, batch: FrameBatch) -> tuple[Array, Array]:
     """(mean loss per labelled cell, per-frame (values 3, status) (N, 4)) without gradients."""
     zero = jnp.zeros((), batch.targets.dtype)
-    losses, seen = jax.vmap(lambda row: _frame(seg, row, zero, zero, zero))(batch)
+    losses, seen = map_frames(lambda row: _frame(seg, row, zero, zero, zero), batch)
     return jnp.sum(losses) / _n_cells(batch), seen
 
 
@@ -194,7 +193,7 @@ def _batch_loss(
     seg: LearnedSegmenter, batch: FrameBatch, weights: tuple[Array, Array, Array]
 ) -> Array:
     """The training objective of :func:`loss_and_grad` without its gradient."""
-    losses, _ = jax.vmap(lambda row: _frame(seg, row, *weights))(batch)
+    losses, _ = map_frames(lambda row: _frame(seg, row, *weights), batch)
     return jnp.sum(losses) / _n_cells(batch)
 
 

@@ -25,7 +25,7 @@ from jaxtyping import Array
 from ..result import FEATURES_INTENSITY, FrameResult, failed
 from ..rig import Rig, rect_problem, rim_hint_range_px
 from ..status import Status
-from ..xla import jit
+from ..xla import frames_in_lockstep, jit
 from .adaptive import default_segmenter
 from .estimator import Prepared, RigArrays, SoftEstimate, finish, prepare, rechoose, rig_arrays
 from .hough import radius_range_px
@@ -123,7 +123,7 @@ def _use_vmap() -> bool:
     # On a CPU, vmap runs the Levenberg-Marquardt loops of all frames in lockstep until the
     # slowest converges, and XLA optimises a looped body (lax.map) worse than a plain one:
     # frame by frame is fastest there. Accelerators want the whole batch.
-    return jax.default_backend() != "cpu"
+    return frames_in_lockstep()
 
 
 def _stack(items: list) -> object:
