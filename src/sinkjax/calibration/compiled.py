@@ -132,8 +132,9 @@ def loss_and_grad(
     config: AugmentConfig = DEFAULT_CONFIG,
     encoding: str = "linear",
 ) -> LossAndGrad:
-    """The calibration loss of a stack of labelled frames and its gradient (vmap of grad),
-    frame by frame (:func:`~sinkjax.calibration.loss.frame_losses`). With ``use_augment`` each
+    """The calibration loss of a stack of labelled frames and its gradient, taken frame by
+    frame (:func:`~sinkjax.calibration.loss.frame_losses`, over
+    :func:`~sinkjax.xla.map_frames`). With ``use_augment`` each
     frame first gets a random lighting change from ``key``. ``rim`` (traced; None: each frame's
     own) is the recording's rim every frame is measured with. The rig's numbers reach the
     compiled function as arrays (:class:`~sinkjax.calibration.loss.LossRig`): one compile per
