@@ -28,7 +28,7 @@ from ..rig import SEG_FIELDS, SegmentationParams
 from ..soft.estimator import SoftEstimate, measure_from_mask
 from ..soft.segmentation import soft_open, wheel_mask
 from ..soft.uncertainty import UncertaintyModel
-from ..xla import jit
+from ..xla import jit, map_frames
 
 VALUE_NAMES = (
     "sinkage_mm",
@@ -95,7 +95,10 @@ def _from_mask_batch(uncertainty: UncertaintyModel | None) -> BatchFn:
         )
         return estimate_values(est), est.status
 
-    return jax.vmap(one, in_axes=(None, 0, 0))
+    def batch(rig: BridgeRig, images: Array, masks: Array) -> tuple[Array, Array]:
+        return map_frames(lambda frame: one(rig, *frame), (images, masks))
+
+    return batch
 
 
 def _from_image_batch(uncertainty: UncertaintyModel | None, open_radius_px: int) -> BatchFn:
@@ -115,7 +118,10 @@ def _from_image_batch(uncertainty: UncertaintyModel | None, open_radius_px: int)
         )
         return estimate_values(est), est.status
 
-    return jax.vmap(one, in_axes=(None, 0, None))
+    def batch(rig: BridgeRig, images: Array, seg_vector: Array) -> tuple[Array, Array]:
+        return map_frames(lambda image: one(rig, image, seg_vector), images)
+
+    return batch
 
 
 class JittedBatch:
