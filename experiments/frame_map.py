@@ -72,11 +72,11 @@ def child(mode: str, width: int, height: int, n: int, seed: int, preset: str, st
             "loss": (C.compiled._loss_value, (raw, images, targets, None)),
             "gradient": (C.compiled._loss_and_grad, (raw, images, targets, key, None)),
         }
+        rig_arrays = C.compiled.loss_rig(
+            numbers["rect"], numbers["travel"], numbers["wheel_radius_mm"], images.shape,
+            numbers["encoding"],
+        )  # fmt: skip
         for name, (fn, args) in calls.items():
-            rig_arrays = C.compiled.loss_rig(
-                numbers["rect"], numbers["travel"], numbers["wheel_radius_mm"], images.shape,
-                numbers["encoding"],
-            )  # fmt: skip
             full = (*args, rig_arrays) + ((False, C.DEFAULT_CONFIG) if name == "gradient" else ())
             t0 = time.perf_counter()
             lowered = fn.lower(*full)

@@ -1,6 +1,7 @@
 """How sinkjax compiles: ``jax.jit`` / ``eqx.filter_jit``, with XLA options that make the soft
 method compile faster on a CPU where ``SINKJAX_FAST_COMPILE=1`` asks for them (chosen once per
-process, at the first compile). Off by default: they compile faster but run slower.
+process, at the first compile). Off by default: they compile faster but run slower. And how a
+stack of frames is mapped on each backend (:func:`map_frames`).
 
 The soft method is one large program (segmentation, outline, rim search, two Levenberg-Marquardt
 solves, covariance, checks: about 29 000 lines of HLO before optimisation), and on a CPU
