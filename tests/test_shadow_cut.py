@@ -9,6 +9,7 @@ import numpy as np
 from sinkjax import synth
 from sinkjax.soft.adaptive import AdaptiveSegmenter
 from sinkjax.soft.estimator import rig_arrays
+from sinkjax.soft.settings import SoftSettings
 from sinkjax.soft.shadow_cut import shadow_cut, spills
 from sinkjax.synth.scene import surface_y_px
 
@@ -83,15 +84,46 @@ def test_cast_shadow_taken_for_wheel_is_cut_at_the_rendered_surface() -> None:
         assert np.sum(deep) < 0.05 * np.sum(mask[rows, cols] >= 0.5)
 
 
-def test_shaded_wheel_over_its_shadow_is_left_alone() -> None:
+def _wheel_cut_above(removed: np.ndarray, mask: np.ndarray, surface: np.ndarray) -> int:
+    """Wheel pixels (mask >= 0.5) the cut removed more than 3 px above the rendered surface."""
+    above = np.arange(mask.shape[0])[:, None] < surface[None, :] - 3
+    return int(np.sum(removed & above & (mask >= 0.5)))
+
+
+def test_a_run_that_climbs_into_the_dark_lower_face_is_cut_at_the_step() -> None:
+    """Strong light from one side: the wheel's lower face is nearly as dark as its shadow on the
+    soil, so the run of shadow-coloured rows climbs on through the soil line into the face and
+    ends on its smooth shading (no step there: that cut is refused). The second try takes the
+    strongest step on the run's way up, the occlusion edge, and cuts on the rendered surface,
+    within the outline's refinement window (which then finds the edge to a fraction of a px)."""
+    window = SoftSettings().refine_half_width_px
+    for i in (0, 1, 2):
+        truth, mask, spilt, cut, changed, surface = _frame("hard_shading", 27, i)
+        assert spilt and changed and truth.sinkage_px > 8
+        removed = cut != mask
+        tops = _cut_tops(removed, truth, surface)
+        assert tops.size > 50
+        assert abs(np.median(tops)) < 1.0
+        assert np.mean(np.abs(tops) <= window) > 0.95
+        assert _wheel_cut_above(removed, mask, surface) < 0.02 * np.sum(removed & (mask >= 0.5))
+
+
+def test_shaded_wheel_over_its_shadow_is_not_cut_through_its_face() -> None:
     """One-sided light: the wheel's shaded side is as dark as its shadow on the soil, and the
     mask spills into the shadow; colour alone would cut half the wheel away. The cut needs a
-    step in the image (the soil line is an occlusion edge; shading is smooth): none here, so
-    the mask is returned as it was, bit for bit."""
+    step in the image (the soil line is an occlusion edge; shading is smooth): the colour run's
+    top has none and is refused; what is cut is cut at the soil line's step, and not one wheel
+    pixel above the rendered surface goes."""
+    window = SoftSettings().refine_half_width_px
     for i in (0, 1):
-        _, mask, spilt, cut, changed, _ = _frame("hard_shading", 0, i)
-        assert spilt and not changed
-        np.testing.assert_array_equal(cut, mask)
+        truth, mask, spilt, cut, changed, surface = _frame("hard_shading", 0, i)
+        assert spilt and truth.sinkage_px > 4
+        removed = cut != mask
+        assert _wheel_cut_above(removed, mask, surface) == 0
+        if changed:
+            tops = _cut_tops(removed, truth, surface)
+            assert abs(np.median(tops)) < 1.0
+            assert np.mean(np.abs(tops) <= window) > 0.8
 
 
 def test_a_mask_that_does_not_spill_is_returned_unchanged() -> None:

@@ -35,8 +35,16 @@ Then:
    down to 2-3), and the soil line lies at least ``MIN_DEPTH_PX`` inside the rim somewhere (a
    shallower contact is not measured through a shadow; it stays flagged).
 
+5. A second try where that cut is not believable: in strong light from one side the wheel's
+   lower face (shaded, perhaps dusted) can be nearly as dark as its shadow, so the run climbs on
+   through the soil line into the face and stops on its smooth shading (no step). The soil line
+   is then the strongest step (the vertical colour edge) on the run's way up, from its top down
+   to its lowest shadow pixel, in each column; steps 3 and 4 are taken again from there, and the
+   cut is made only if it is believable by the same tests.
+
 From each cut column's soil line down, the column is soil. A frame that does not spill, or whose
-cut is not believable, is returned unchanged, bit for bit. A choice, not a measurement: no
+cuts are not believable, is returned unchanged, bit for bit; a frame whose first cut is
+believable gets that cut, as before the second try existed. A choice, not a measurement: no
 gradient flows through where the cut is; the outline taken again after it is refined on the
 image, so the soil line is located by the image's own edge.
 """
@@ -138,7 +146,7 @@ def shadow_cut(
     """(the mask with the shadow below its soil line cut away, whether it changed).
     ``disc``: the recording's rim (cx, cy, r) px; radius 0: nothing changes."""
     cx, cy, r, y, x, d2 = disc_grid(mask, disc)
-    height, width = mask.shape
+    height = mask.shape[0]
     dt = mask.dtype
     wheel = jax.lax.stop_gradient(mask) >= 0.5
     rgb = jnp.stack([smooth(image[..., c]) for c in range(3)], axis=-1)
@@ -171,11 +179,44 @@ def shadow_cut(
     top = jnp.where(
         jnp.any(stop, axis=0), (height - jnp.argmax(stop[::-1], axis=0)).astype(dt), below_centre
     )
-    cols = jnp.arange(width)
     # The soil line's curve from the columns where the mask crosses the rim into the shadow
-    # (their run starts beyond the rim); another column is cut only where its own run's top
-    # agrees with that curve (a shaded side's run, say, climbs far above it).
+    # (their run starts beyond the rim).
     crossing = in_run & ((lowest.astype(dt) - cy) ** 2 + (x[0] - cx) ** 2 > r * r)
+    edge = colour_edge(image)
+    found = spills(mask, (cx, cy, r)) & apart
+    cut, changed = _believable(top, crossing, in_run, edge, found, (cx, cy, r, y, x, d2))
+    # The run can climb on through the soil line into the wheel's own dark lower face (shaded,
+    # dusted: as near the shadow's colour as the face's) and stop on its smooth shading, where
+    # the image has no step. Then the soil line is the strongest step on the run's way up: the
+    # occlusion edge between face and shadow. A second try from there.
+    span = window & (y >= top[None, :] - 1.0) & (y <= lowest[None, :].astype(dt))
+    strongest = jnp.argmax(jnp.where(span, edge, -1.0), axis=0).astype(dt)
+    again, changed_again = _believable(
+        jnp.where(in_run, strongest, top), crossing, in_run, edge, found, (cx, cy, r, y, x, d2)
+    )
+    second = ~changed & changed_again
+    return jnp.where(second, jnp.where(again, 0.0, mask), jnp.where(cut, 0.0, mask)), (
+        changed | changed_again
+    )
+
+
+def _believable(
+    top: Float[Array, " W"],
+    crossing: Bool[Array, " W"],
+    in_run: Bool[Array, " W"],
+    edge: Float[Array, "H W"],
+    found: Bool[Array, ""],
+    grid: tuple[Array, Array, Array, Array, Array, Array],
+) -> tuple[Bool[Array, "H W"], Bool[Array, ""]]:
+    """(where to cut, whether to) for the soil line at row ``top`` of each column (the module
+    docstring's steps 3 and 4); ``found``: the frame spills and its shadow is apart from the
+    wheel's colours."""
+    cx, cy, r, y, x, d2 = grid
+    height, width = edge.shape
+    dt = top.dtype
+    cols = jnp.arange(width)
+    # Another column than the crossing ones is cut only where its own run's top agrees with
+    # their curve (a shaded side's run, say, climbs far above it).
     line = _robust_curve(x[0], top, crossing, cx, r)
     agree = in_run & (jnp.abs(top - line) <= TOL_PX)
     # A crossing column between agreeing ones whose run climbed off the curve (a patch of the
@@ -188,11 +229,10 @@ def shadow_cut(
     n_cross = jnp.sum(crossing.astype(dt))
     n_agree = jnp.sum((crossing & agree).astype(dt))
     enough = n_agree >= jnp.maximum(MIN_COLUMNS, MIN_AGREE * n_cross)
-    changed = spills(mask, (cx, cy, r)) & apart & enough
+    changed = found & enough
     # The soil line is an occlusion edge, a step in the image; where the cut runs through a
     # smooth shading gradient instead (a wheel's own shaded side as dark as its shadow), the
     # colours were no guide: no cut.
-    edge = colour_edge(image)
     row = jnp.clip(top.astype(jnp.int32), 0, height - 1)
 
     def at(k: int) -> Array:
@@ -210,5 +250,4 @@ def shadow_cut(
     # columns whose own run did not reach the soil line: a paler penumbra, the shadow beside
     # the wheel).
     beyond = (d2 > r * r) & (y > cy) & (y > line[None, :] + TOL_PX)
-    cut = changed & ((use[None, :] & (y >= top[None, :])) | beyond)
-    return jnp.where(cut, 0.0, mask), changed
+    return changed & ((use[None, :] & (y >= top[None, :])) | beyond), changed
