@@ -184,7 +184,8 @@ def shadow_cut(
     crossing = in_run & ((lowest.astype(dt) - cy) ** 2 + (x[0] - cx) ** 2 > r * r)
     edge = colour_edge(image)
     found = spills(mask, (cx, cy, r)) & apart
-    cut, changed = _believable(top, crossing, in_run, edge, found, (cx, cy, r, y, x, d2))
+    grid = (cx, cy, r, y, x, d2)
+    cut, changed = _believable(top, crossing, in_run, edge, found, grid)
     # The run can climb on through the soil line into the wheel's own dark lower face (shaded,
     # dusted: as near the shadow's colour as the face's) and stop on its smooth shading, where
     # the image has no step. Then the soil line is the strongest step on the run's way up: the
@@ -192,12 +193,10 @@ def shadow_cut(
     span = window & (y >= top[None, :] - 1.0) & (y <= lowest[None, :].astype(dt))
     strongest = jnp.argmax(jnp.where(span, edge, -1.0), axis=0).astype(dt)
     again, changed_again = _believable(
-        jnp.where(in_run, strongest, top), crossing, in_run, edge, found, (cx, cy, r, y, x, d2)
+        jnp.where(in_run, strongest, top), crossing, in_run, edge, found, grid
     )
-    second = ~changed & changed_again
-    return jnp.where(second, jnp.where(again, 0.0, mask), jnp.where(cut, 0.0, mask)), (
-        changed | changed_again
-    )
+    # ``cut`` is empty unless the first try holds; the second is used only where it does not.
+    return jnp.where(cut | (~changed & again), 0.0, mask), changed | changed_again
 
 
 def _believable(
