@@ -251,9 +251,10 @@ def main(argv: list[str] | None = None) -> int:
         "machine": runs.machine(),
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    runs.write_json(args.out / f"{NAME}.json", data)
+    name = NAME if args.seed == EVAL_SEED else f"{NAME}_seed{args.seed}"
+    runs.write_json(args.out / f"{name}.json", data)
     text = report(data)
-    (args.out / f"{NAME}.md").write_text(text, encoding="utf-8")
+    (args.out / f"{name}.md").write_text(text, encoding="utf-8")
     print(text)
     return 0
 

@@ -554,8 +554,13 @@ def test_grid_start_escapes_a_plateau_and_is_never_worse_than_the_grid(
     monkeypatch.setattr(L, "measure", plateau)
     monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
     _clear_loss_caches()
-    stuck = C.calibrate(fake_frames(), FAKE_RIG, steps=30, grid=None)
+    stuck = C.calibrate(fake_frames(), FAKE_RIG, steps=30, grid=None, polish_measurements=0)
     assert stuck.loss_after == stuck.loss_before  # gradient descent alone cannot move
+    # The polish's compass steps (0.5 raw: P_d(S) 0.5 -> 0.62) leave the plateau without a grid.
+    polished = C.calibrate(fake_frames(), FAKE_RIG, steps=30, grid=None)
+    assert polished.polished is not None and polished.polished[0] == stuck.loss_after
+    assert polished.loss_after < 0.1 * stuck.loss_after
+    assert polished.rig.segmentation.as_dict()["p_d_sat"] > 0.6
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=30)
     assert res.loss_after <= res.grid_best_loss < stuck.loss_after
     assert res.after.n_ok == 2 and res.loss_after < 1e-2 * res.loss_before
@@ -955,6 +960,33 @@ def test_the_returned_point_is_scored_with_the_rim_it_finds_itself() -> None:
         list(points), 3, 3, loss_with, lambda raw: rims[int(raw[0])], held
     )
     assert chosen == 3 and scored == []
+
+
+def test_polish_walks_down_a_staircase_and_never_goes_up() -> None:
+    from sinkjax.calibration import rescore as R
+
+    # A loss measured as estimate does: piecewise constant (each threshold moves pixels in
+    # steps), no gradient. Its minimum lies at raw (1.0, -0.5, 0.75, x): reachable by steps of
+    # 0.5 and 0.25 from 0. Raw 4..6 (temperatures, veto) are never moved.
+    target = np.array([1.0, -0.5, 0.75])
+
+    def score(raw):
+        r = np.asarray(raw)
+        loss = float(np.sum(np.round(np.abs(r[:3] - target) / 0.125)) + 0.1 * abs(r[6]))
+        return types.SimpleNamespace(loss=jnp.asarray(loss))
+
+    start = jnp.zeros(7).at[6].set(0.3)
+    seen: list[float] = []
+    trail = R.polish(start, score(start), score, 200, seen.append)
+    best = min(trail, key=lambda p: float(p[1].loss))
+    np.testing.assert_allclose(np.asarray(best[0])[:3], target, atol=1e-12)
+    assert float(best[1].loss) == pytest.approx(0.03)
+    assert all(float(np.asarray(r)[6]) == pytest.approx(0.3) for r, _ in trail)
+    assert seen == [float(o.loss) for _, o in trail]
+    # A budget is a budget; a start that is already the minimum stays the minimum.
+    assert len(R.polish(start, score(start), score, 5)) == 5
+    at_min = best[0]
+    assert min(float(o.loss) for _, o in R.polish(at_min, score(at_min), score, 100)) >= 0.03
 
 
 _LOWER_GRADIENT = """

@@ -2,10 +2,11 @@
 
 ``labels`` reads and checks LABELS.csv -> ``loss`` is the robust error of the soft estimator on
 those frames, differentiable in the thresholds (``compiled``: compiled once per image size) ->
-``optimise`` scores a coarse grid and runs Adam from its best points (back-off, early stop) and
-reports the calibrated rig; ``checks`` says whether it converged, which frames disagree and the
-leave-one-out error; ``augment`` relights frames so the thresholds survive a moving lamp;
-``cli`` is ``sinkjax calibrate``.
+``optimise`` scores a coarse grid and runs Adam from its best points (back-off, early stop),
+``rescore`` measures the candidates with their own rims and polishes the best (a compass
+search), and ``optimise`` reports the calibrated rig; ``checks`` says whether it converged, which
+frames disagree and the leave-one-out error; ``augment`` relights frames so the thresholds
+survive a moving lamp; ``cli`` is ``sinkjax calibrate``.
 The public names are re-exported here, flat.
 """
 
@@ -14,7 +15,7 @@ from .augment import (
     AugmentConfig as AugmentConfig,
     augment as augment,
 )
-from .checks import Checks as Checks, run_checks as run_checks
+from .checks import Checks as Checks, Errors as Errors, run_checks as run_checks
 from .compiled import loss_and_grad as loss_and_grad, loss_value as loss_value
 from .labels import (
     LABEL_COLUMNS as LABEL_COLUMNS,
@@ -39,6 +40,5 @@ from .optimise import (
     BACKTRACK as BACKTRACK,
     GRID as GRID,
     CalibrationResult as CalibrationResult,
-    Errors as Errors,
     calibrate as calibrate,
 )

@@ -38,6 +38,37 @@ LOO_USABLE_REL = 0.10
 
 
 @dataclasses.dataclass(frozen=True)
+class Errors:
+    """Median absolute errors over measured cells; a frame that is not ok counts as zeros."""
+
+    sinkage_mm: float
+    theta1_deg: float
+    theta2_deg: float
+    sinkage_rel: float  # median of |error| / measured sinkage over frames measured > 0
+    n_ok: int
+    n_frames: int
+
+    @classmethod
+    def of(cls, values: np.ndarray, status: np.ndarray, targets: np.ndarray) -> Errors:
+        """``values`` and ``targets`` (N, 3) in mm/deg/deg (NaN target = not measured)."""
+        ok = (np.asarray(status) == Status.OK.code)[:, None] & np.isfinite(values)
+        err = np.abs(np.where(ok, values, 0.0) - targets)
+        med = [
+            float(np.median(e[np.isfinite(e)])) if np.isfinite(e).any() else math.nan for e in err.T
+        ]
+        pos = np.nan_to_num(targets[:, 0]) > 0
+        rel = float(np.median(err[pos, 0] / targets[pos, 0])) if pos.any() else math.nan
+        return cls(med[0], med[1], med[2], rel, int(np.sum(ok[:, 0])), len(values))
+
+    def line(self) -> str:
+        return (
+            f"sinkage {self.sinkage_mm:.2f} mm ({100 * self.sinkage_rel:.1f} %), theta1 "
+            f"{self.theta1_deg:.2f} deg, theta2 {self.theta2_deg:.2f} deg; "
+            f"{self.n_ok}/{self.n_frames} frames ok"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
 class Checks:
     """Convergence, disagreeing frames ``(name, loss per value, median of the others)`` and the
     leave-one-out errors: per frame ``(name, |z0 error| mm, relative, |theta1|, |theta2| deg,

@@ -7,10 +7,11 @@ plus the rig's own point; its best few again with the soil/background veto relax
 :data:`VETO_RELAXED`) by the loss alone (``compiled.loss_value``, while the gradient compiles on
 another thread), then runs Adam from the best few grid points (a short probe each, the rest of
 the steps from the best probe) and keeps the best point seen anywhere, scored as ``sinkjax
-estimate`` will measure it (with the rim its own thresholds find): the result is never worse,
-on the labelled frames, than the grid's best point. Each descent keeps its best point, goes
-back there with a smaller step when a step lands where frames fail, and stops once the loss
-has not improved for a while.
+estimate`` will measure it (with the rim its own thresholds find), and polishes it by a compass
+search that measures every point so (``rescore.polish``): the result is never worse, on the
+labelled frames, than the grid's best point. Each descent keeps its best point, goes back there
+with a smaller step when a step lands where frames fail, and stops once the loss has not
+improved for a while.
 ``checks.py`` then says whether it converged, which labelled frames disagree with the rest, and
 the leave-one-out error.
 """
@@ -24,7 +25,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,16 +36,20 @@ from jaxtyping import Array, PRNGKeyArray
 from ..rig import Rig, SegmentationParams
 from ..soft.batch import SoftRecording
 from ..soft.rim import RecordingRim
-from ..status import Status
 from .augment import DEFAULT_CONFIG, AugmentConfig
-from .checks import Checks, run_checks
+from .checks import Checks, Errors, run_checks
 from .compiled import compile_in_background, loss_and_grad, loss_value
 from .labels import LabelledFrames
-from .loss import LossAndGrad, from_raw, to_raw
-from .rescore import _as_estimate_measures, _distinct_lowest
+from .loss import LossAndGrad, to_raw
+from .rescore import (
+    POLISH_MEASUREMENTS,
+    _as_estimate_measures,
+    _distinct_lowest,
+    _with,
+    polish_best,
+)
 
 BACKTRACK = 2.0  # a loss above this times the best so far sends Adam back to the best point
-_OK = Status.OK.code
 # The coarse grid (81 points) around the defaults (P_d(H) 0.9, P_a(H) 1.1, P_d(S) 0.5,
 # P_a(S) 1.8): each value, a narrow and a wide band in each direction. The 16 corners alone
 # missed the best band on a colour cast (hard_cast, seed 20263: P_d(S) 0.7, loss 0.20, where
@@ -65,37 +70,6 @@ N_RELAXED = 6
 
 
 @dataclasses.dataclass(frozen=True)
-class Errors:
-    """Median absolute errors over measured cells; a frame that is not ok counts as zeros."""
-
-    sinkage_mm: float
-    theta1_deg: float
-    theta2_deg: float
-    sinkage_rel: float  # median of |error| / measured sinkage over frames measured > 0
-    n_ok: int
-    n_frames: int
-
-    @classmethod
-    def of(cls, values: np.ndarray, status: np.ndarray, targets: np.ndarray) -> Errors:
-        """``values`` and ``targets`` (N, 3) in mm/deg/deg (NaN target = not measured)."""
-        ok = (np.asarray(status) == _OK)[:, None] & np.isfinite(values)
-        err = np.abs(np.where(ok, values, 0.0) - targets)
-        med = [
-            float(np.median(e[np.isfinite(e)])) if np.isfinite(e).any() else math.nan for e in err.T
-        ]
-        pos = np.nan_to_num(targets[:, 0]) > 0
-        rel = float(np.median(err[pos, 0] / targets[pos, 0])) if pos.any() else math.nan
-        return cls(med[0], med[1], med[2], rel, int(np.sum(ok[:, 0])), len(values))
-
-    def line(self) -> str:
-        return (
-            f"sinkage {self.sinkage_mm:.2f} mm ({100 * self.sinkage_rel:.1f} %), theta1 "
-            f"{self.theta1_deg:.2f} deg, theta2 {self.theta2_deg:.2f} deg; "
-            f"{self.n_ok}/{self.n_frames} frames ok"
-        )
-
-
-@dataclasses.dataclass(frozen=True)
 class CalibrationResult:
     """The calibrated rig, the losses, and the labelled frames' errors before and after.
 
@@ -112,6 +86,7 @@ class CalibrationResult:
     loss_before: float = math.nan  # the rig's own thresholds
     after_loss: float = math.nan
     grid_best_loss: float = math.nan  # the best grid point's (NaN without a grid)
+    polished: tuple[float, float, int] | None = None  # the polish's loss from, to; measurements
     checks: Checks | None = None
     rim: str = "per-frame rim"  # what the labelled frames were measured with, in words
 
@@ -129,6 +104,15 @@ class CalibrationResult:
                 f"median |error| before: {self.before.line()}",
                 f"median |error| after:  {self.after.line()}",
                 f"labelled frames measured with the {self.rim}",
+                *(
+                    []
+                    if self.polished is None
+                    else [
+                        f"polish (each point measured with the rim it finds): loss "
+                        f"{self.polished[0]:.4g} -> {self.polished[1]:.4g} in "
+                        f"{self.polished[2]} measurements"
+                    ]
+                ),
                 f"[segmentation] {params}",
                 *(
                     []
@@ -212,6 +196,7 @@ def calibrate(
     grid: dict[str, tuple[float, ...]] | None = GRID,
     starts: int = N_STARTS,
     rim: str | RecordingRim = "recording",
+    polish_measurements: int = POLISH_MEASUREMENTS,
 ) -> CalibrationResult:
     """Tune ``rig.segmentation`` to labelled frames: grid, then Adam; returns the calibrated rig.
 
@@ -227,9 +212,11 @@ def calibrate(
     more than doubles the loss (frames stopped measuring) and stops after ``patience`` steps
     without improvement. With ``augment`` each step's gradient averages the frames as labelled
     and under a random lighting change; ``steps=0``: the grid search alone (no gradient is
-    compiled). The result's ``checks`` say whether the last descent converged, which frames
-    disagree with the rest, and the leave-one-out error. ``losses`` is the final descent's loss
-    per step (from its starting point).
+    compiled). After the descents, the chosen point is polished (``rescore.polish``: a compass
+    search over P_d/P_a in at most ``polish_measurements`` measurements, each with the rim the
+    point finds; 0: none, nor with ``steps=0``). The result's ``checks`` say whether the last
+    descent converged, which frames disagree with the rest, and the leave-one-out error.
+    ``losses`` is the final descent's loss per step (from its starting point).
     ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
     ``sinkjax estimate`` measures them: their rim circle is found once, from the frames
     themselves with ``rig``'s thresholds (:class:`~sinkjax.soft.batch.SoftRecording`), and every
@@ -237,15 +224,15 @@ def calibrate(
     numbers the calibrated rig will report (each frame's own rim where the frames show no common
     circle); "frame": each frame's own rim (a camera that moves relative to the wheel); a
     :class:`~sinkjax.soft.rim.RecordingRim`: that rim.
-    Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0, ``starts`` < 1 or another
-    ``rim``.
+    Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0, ``starts`` < 1,
+    ``polish_measurements`` < 0 or another ``rim``.
     """
     from tqdm import tqdm
 
-    if steps < 0 or not learning_rate > 0 or starts < 1:
+    if steps < 0 or not learning_rate > 0 or starts < 1 or polish_measurements < 0:
         raise ValueError(
-            f"need steps >= 0, learning_rate > 0, starts >= 1; got {steps}, {learning_rate}, "
-            f"{starts}"
+            "need steps >= 0, learning_rate > 0, starts >= 1, polish_measurements >= 0; got "
+            f"{steps}, {learning_rate}, {starts}, {polish_measurements}"
         )
     t0 = time.perf_counter()
     held = labelled_rim(frames, rig, rim)
@@ -327,10 +314,26 @@ def calibrate(
             lambda r, h: loss_value(r, images, targets, h, **numbers),  # type: ignore[arg-type]
             rim_of, held,
         )  # fmt: skip
-    raw_best, out_best = points[i_best]
-    calibrated = _with(rig, raw_best)
     if rim != "recording":
         measured = set(range(n_grid))
+    polished = None
+    if steps and polish_measurements:
+        own = rim == "recording"
+        bar = tqdm(total=polish_measurements, desc="polish", unit="pt", disable=not progress)
+        i_best, polished = polish_best(
+            points,
+            i_best,
+            lambda r: (
+                loss_value(r, images, targets, rim_of(r), **numbers)  # type: ignore[arg-type]
+                if own
+                else value(r)
+            ),
+            polish_measurements,
+            lambda _: bar.update(),
+        )
+        bar.close()
+    raw_best, out_best = points[i_best]
+    calibrated = _with(rig, raw_best)
     # The best grid point as it will be measured (the start's rim where none was scored again).
     on_grid = [float(points[i][1].loss) for i in range(1, n_grid) if i in measured] or [
         float(points[i][1].loss) for i in range(1, n_grid)
@@ -346,6 +349,7 @@ def calibrate(
         loss_before=float(first.loss),
         after_loss=float(out_best.loss),
         grid_best_loss=grid_best,
+        polished=polished,
         checks=run_checks(
             [np.asarray(o.frames.loss) for _, o in points],
             [np.asarray(o.frames.values) for _, o in points],
@@ -357,12 +361,6 @@ def calibrate(
         ),
         rim=(rim_of(raw_best) if rim == "recording" else held).describe(),
     )
-
-
-def _with(rig: Rig, raw: Array) -> Rig:
-    """``rig`` with the thresholds of the raw vector ``raw`` (every other field kept: the rim
-    hint, the encoding)."""
-    return dataclasses.replace(rig, segmentation=_python_floats(from_raw(raw)))
 
 
 def _own_rim(frames: LabelledFrames, rig: Rig) -> RecordingRim:
@@ -393,9 +391,3 @@ def labelled_rim(frames: LabelledFrames, rig: Rig, rim: str | RecordingRim) -> R
 
 def _errors(out: LossAndGrad, targets: np.ndarray) -> Errors:
     return Errors.of(np.asarray(out.frames.values), np.asarray(out.frames.status), targets)
-
-
-def _python_floats(seg: SegmentationParams) -> SegmentationParams:
-    # Plain floats: the rig file then holds exactly what was measured with (round trip).
-    values: dict[str, Any] = seg.as_dict()
-    return SegmentationParams(**values)
