@@ -9,7 +9,10 @@ third, with the renderer's exact truth), then measure the whole recording as a u
 - the best point of a 4^4 grid over P_d/P_a for hue and saturation (:data:`HAND_GRID`, none of
   its values on the calibration's own grid), chosen by the calibration loss on the same 6
   labelled frames (what a user does by hand),
-- the calibrated rig (``sinkjax.calibration.calibrate``: grid start, then Adam through the fit).
+- the calibrated rig (``sinkjax.calibration.calibrate``: grid start, then Adam through the fit,
+  then the polish), calibrated as ``sinkjax calibrate`` calibrates a LABELS.csv in the
+  recording's folder: the labelled frames measured with the rim the recording's first frames
+  show (``LabelledFrames.rim_images``).
 
 The numbers are over the 12 held-out frames of each recording: median relative sinkage error
 (true contact), failed frames, median |θ| error, ±1.96σ coverage of z0 over the `ok` frames. The
@@ -34,7 +37,7 @@ from common import runs
 
 from sinkjax import Rig, SegmentationParams, metrics as sm, synth as S
 from sinkjax.calibration import LabelledFrames, calibrate
-from sinkjax.soft.batch import SoftRecording
+from sinkjax.soft.batch import RIM_FRAMES, SoftRecording
 from sinkjax.synth.hard import HARD_PRESETS
 from sinkjax.synth.recording import frame_seed
 
@@ -125,7 +128,14 @@ def run_recording(
     t0 = time.perf_counter()
     grid_rig, grid_loss = grid_best(lab_i, lab_t, rig, grid)
     grid_s = time.perf_counter() - t0
-    frames = LabelledFrames(np.stack(lab_i), lab_t, tuple(f"{i:02d}" for i in LABELLED))
+    # As `sinkjax calibrate` of a LABELS.csv in the recording's folder: the rim circle from the
+    # recording's first frames, as `sinkjax estimate` of the folder finds it.
+    frames = LabelledFrames(
+        np.stack(lab_i),
+        lab_t,
+        tuple(f"{i:02d}" for i in LABELLED),
+        rim_images=np.stack(images[:RIM_FRAMES]),
+    )
     t0 = time.perf_counter()
     res = calibrate(frames, rig, steps=steps, seed=seed)
     cal_s = time.perf_counter() - t0
@@ -208,9 +218,10 @@ def report(data: dict) -> str:
     }
     lines += [
         "",
-        "Loss on the 6 labelled frames measured on their own (as the grid search and "
-        "`calibrate` score them; the table's last column measures them within the whole "
-        "recording, whose rim comes from its first frames): "
+        "Loss on the 6 labelled frames measured on their own (as the grid search scores "
+        "them; the table's last column measures them within the whole recording, whose rim "
+        "comes from its first frames, as `calibrate` of labels in the recording's folder "
+        "scores them): "
         + "; ".join(
             f"{r['preset']}/{r['recording']} grid {r['grid_search_loss']:.3f}, calibrated "
             f"{r['calibrated_alone_loss']:.3f}"

@@ -9,6 +9,7 @@ loss once for the whole module.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
 import math
 import shutil
@@ -733,6 +734,9 @@ def test_cli_writes_a_complete_calibrated_rig(recording: Path, cli_run: tuple[Pa
     )
     assert rig.segmentation.as_dict() != start.segmentation.as_dict()
     assert "median |error| before" in printed and "median |error| after" in printed
+    # The fixture's folder holds the three labelled frames: the rim is found from them.
+    assert "rim circle found from the first 3 frames of the recording in" in printed
+    assert "polish (each point measured with the rim it finds): loss" in printed
     assert "calibrated by `sinkjax calibrate LABELS.csv`" in out.read_text(encoding="utf-8")
 
 
@@ -771,6 +775,65 @@ def test_loss_measures_the_labelled_frames_as_estimate_does(recording: Path) -> 
         np.testing.assert_allclose(np.array(reported, float), values, rtol=1e-6, atol=1e-6)
     # Each frame's own rim gives other numbers: the test above can tell the two apart.
     assert np.max(np.abs(np.asarray(own.values) - np.asarray(held.values))) > 1e-3
+
+
+def test_labels_in_a_recording_folder_are_measured_with_the_recordings_rim(
+    tmp_path: Path,
+) -> None:
+    """`sinkjax calibrate` measures the labelled frames with the rim `sinkjax estimate` of the
+    labels' folder finds: from the recording's first frames of that size, not the labelled
+    ones."""
+    from sinkjax.app.sources import expand_paths
+    from sinkjax.calibration.labels import recording_rim_images
+    from sinkjax.synth import write_recording
+
+    rec = write_recording(
+        tmp_path / "rec", n_frames=11, seed=5, preset="full", width=160, height=120,
+        progress=False,
+    )  # fmt: skip
+    files = sorted(rec.glob("frame_*"))
+    # An image of another size, sorted among the first: estimate finds its rim elsewhere.
+    cv2.imwrite(str(rec / "frame_0000b.png"), np.full((150, 200, 3), 90, np.uint8))
+    labelled = [files[i].name for i in (4, 7, 10)]
+    with (rec / "LABELS.csv").open("w", encoding="utf-8", newline="") as fh:
+        csv.writer(fh).writerows([C.LABEL_COLUMNS, *[[n, "10", "", ""] for n in labelled]])
+    rig = load_rig(rec / "rig.toml")
+    bare = C.read_labels(rec / "LABELS.csv")  # no rig: no rim frames
+    assert bare.rim_images is None and bare.rim_source is bare.images
+    frames = dataclasses.replace(C.read_labels(rec / "LABELS.csv", rig), rim_images=None)
+    got = recording_rim_images(rec / "LABELS.csv", frames, rig)
+    assert got is not None and got.shape == (8, 120, 160, 3)
+    # read_labels with the rig finds them itself (as `sinkjax calibrate` and the review do).
+    auto = C.read_labels(rec / "LABELS.csv", rig).rim_images
+    assert auto is not None and np.array_equal(auto, got)
+    # The first 8 frames of 160x120 by name, read by OpenCV (BGR on disk).
+    want = np.stack([cv2.imread(str(f))[..., ::-1] for f in files[:8]])
+    np.testing.assert_array_equal(got, want)
+    # The rim calibration holds is the one `sinkjax estimate` of the folder uses.
+    with_rim = dataclasses.replace(frames, rim_images=got)
+    held = O.labelled_rim(with_rim, rig, "recording")
+    estimate = SoftRecording()
+    sources = expand_paths([rec]).recordings[0].sources
+    images = [cv2.imread(str(s.path))[..., ::-1] for s in sources]
+    images = [im for im in images if im.shape[:2] == (120, 160)]
+    estimate(images, rig, [f"{i}" for i in range(len(images))])
+    want_rim = estimate.rim_for(120, 160)
+    assert want_rim is not None
+    for a, b in zip(jax.tree.leaves(held), jax.tree.leaves(want_rim), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-9)
+    # Found from the labelled frames alone it is another circle: the test can tell them apart.
+    alone = O.labelled_rim(frames, rig, "recording")
+    assert (
+        abs(float(alone.r_px) - float(held.r_px)) + abs(float(alone.cx_px) - float(held.cx_px)) > 0
+    )
+    # Labels whose images lie outside their folder's recordings: the labelled frames' own rim.
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "LABELS.csv").write_text(
+        f"image,sinkage_mm,theta1_deg,theta2_deg\n../rec/{labelled[0]},10,,\n", encoding="utf-8"
+    )
+    frames2 = C.read_labels(other / "LABELS.csv", rig)
+    assert recording_rim_images(other / "LABELS.csv", frames2, rig) is None
 
 
 @pytest.mark.heavy

@@ -105,6 +105,11 @@ def run_cli(args: argparse.Namespace) -> int:
     setup_compile_cache(args)
     n_cells = int(np.isfinite(frames.targets).sum())
     print(f"calibrating {rig_path} on {len(frames.names)} frames ({n_cells} measured values)")
+    if frames.rim_images is not None:
+        print(
+            f"rim circle found from the first {len(frames.rim_images)} frames of the recording in "
+            f"{labels.parent}, as `sinkjax estimate {labels.parent}` will find it"
+        )
     result = calibrate(
         frames, rig, steps=args.steps, augment=args.augment, seed=args.seed, progress=True
     )

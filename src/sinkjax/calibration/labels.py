@@ -32,6 +32,15 @@ class LabelledFrames:
     images: UInt8[np.ndarray, "N H W 3"]
     targets: Float[np.ndarray, "N 3"]
     names: tuple[str, ...]
+    # The frames the rim circle is found from, as `sinkjax estimate` of the labels' folder finds
+    # it: that recording's first frames of the labelled size (:func:`recording_rim_images`).
+    # None: the labelled frames themselves.
+    rim_images: UInt8[np.ndarray, "M H W 3"] | None = None
+
+    @property
+    def rim_source(self) -> UInt8[np.ndarray, "M H W 3"]:
+        """The frames the labelled frames' rim is found from."""
+        return self.images if self.rim_images is None else self.rim_images
 
 
 def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
@@ -41,6 +50,8 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
     :class:`LabelError` naming the row and column for: missing columns, an empty, missing or
     unreadable image, a number that does not parse or is out of range, no measured cell at all,
     images of different sizes, or a confidence rectangle of ``rig`` that lies off the images.
+    With ``rig``, ``rim_images`` holds the frames ``sinkjax estimate`` of the CSV's folder finds
+    the rim from (:func:`recording_rim_images`).
     """
     from ..app.frames import read_image
 
@@ -104,12 +115,14 @@ def read_labels(path: str | Path, rig: Rig | None = None) -> LabelledFrames:
                 "calibrate one camera set-up (one image size) at a time"
             )
         images.append(image)
+    frames = LabelledFrames(np.stack(images), t, tuple(names))
     if rig is not None:
         height, width = images[0].shape[:2]
         problem = rect_problem(rig.confidence_rect, height, width)
         if problem is not None:
             raise LabelError(f"{p}: the images of these labels: {problem}")
-    return LabelledFrames(np.stack(images), t, tuple(names))
+        frames = dataclasses.replace(frames, rim_images=recording_rim_images(p, frames, rig))
+    return frames
 
 
 def _parse_cell(cell: str, where: str, column: str) -> float:
@@ -134,3 +147,28 @@ def _parse_cell(cell: str, where: str, column: str) -> float:
         unit = "mm >= 0" if column == "sinkage_mm" else "degrees in [-180, 180]"
         raise LabelError(f"{where} {column}: {cell!r} is out of range ({unit})")
     return value
+
+
+def recording_rim_images(path: str | Path, frames: LabelledFrames, rig: Rig) -> np.ndarray | None:
+    """The frames ``sinkjax estimate`` finds the rim from when it measures the folder of the
+    labels file ``path``: the first ones of the labelled size (at most the soft method's
+    ``RIM_FRAMES``) of the recording that holds the first labelled image. When the labels sit in
+    the recording's folder (the usual case) these are the recording's first frames, not the
+    labelled ones, and calibration then measures the labelled frames with the rim the calibrated
+    rig will find in the recording. None where the folder holds no such recording (the labelled
+    frames are then their own rim's frames)."""
+    from ..app.frames import ALL_FRAMES
+    from ..app.pipeline import first_frames_reader
+    from ..app.sources import InputError, expand_paths
+
+    folder = Path(path).parent
+    first = (folder / frames.names[0]).resolve()
+    try:
+        inputs = expand_paths([folder])
+    except InputError:
+        return None
+    for rec in inputs.recordings:
+        if any(Path(src.path).resolve() == first for src in rec.sources):
+            images = first_frames_reader(rec.sources, rig, ALL_FRAMES, 0)(*frames.images.shape[1:3])
+            return np.stack(images) if images else None
+    return None

@@ -218,12 +218,14 @@ def calibrate(
     descent converged, which frames disagree with the rest, and the leave-one-out error.
     ``losses`` is the final descent's loss per step (from its starting point).
     ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
-    ``sinkjax estimate`` measures them: their rim circle is found once, from the frames
-    themselves with ``rig``'s thresholds (:class:`~sinkjax.soft.batch.SoftRecording`), and every
-    frame is measured with it at every point, so that the loss minimised is the error of the
-    numbers the calibrated rig will report (each frame's own rim where the frames show no common
-    circle); "frame": each frame's own rim (a camera that moves relative to the wheel); a
-    :class:`~sinkjax.soft.rim.RecordingRim`: that rim.
+    ``sinkjax estimate`` measures them: their rim circle is found once, from
+    ``frames.rim_source`` (the recording's first frames where ``frames.rim_images`` holds them,
+    else the labelled frames themselves) with ``rig``'s thresholds
+    (:class:`~sinkjax.soft.batch.SoftRecording`), and every frame is measured with it at every
+    point, so that the loss minimised is the error of the numbers the calibrated rig will report
+    (each frame's own rim where the frames show no common circle); "frame": each frame's own rim
+    (a camera that moves relative to the wheel); a :class:`~sinkjax.soft.rim.RecordingRim`: that
+    rim.
     Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0, ``starts`` < 1,
     ``polish_measurements`` < 0 or another ``rim``.
     """
@@ -364,7 +366,8 @@ def calibrate(
 
 
 def _own_rim(frames: LabelledFrames, rig: Rig) -> RecordingRim:
-    """The labelled frames' rim as ``rig`` finds it, without logging a rig that finds none."""
+    """The labelled frames' rim as ``rig`` finds it (in ``frames.rim_source``), without logging a
+    rig that finds none."""
     logger = logging.getLogger("sinkjax")
     level = logger.level
     logger.setLevel(logging.ERROR)
@@ -383,8 +386,8 @@ def labelled_rim(frames: LabelledFrames, rig: Rig, rim: str | RecordingRim) -> R
     if rim != "recording":
         raise ValueError(f"rim must be 'recording', 'frame' or a RecordingRim, got {rim!r}")
     recording = SoftRecording()
-    images = [np.asarray(im) for im in frames.images]
-    recording(images, rig, list(frames.names))
+    images = [np.asarray(im) for im in frames.rim_source]
+    recording(images, rig, [f"rim frame {i}" for i in range(len(images))])
     found = recording.rim_for(*images[0].shape[:2])
     return RecordingRim.per_frame() if found is None else found
 
