@@ -385,11 +385,7 @@ def labelled_rim(frames: LabelledFrames, rig: Rig, rim: str | RecordingRim) -> R
         return RecordingRim.per_frame()
     if rim != "recording":
         raise ValueError(f"rim must be 'recording', 'frame' or a RecordingRim, got {rim!r}")
-    recording = SoftRecording()
-    images = [np.asarray(im) for im in frames.rim_source]
-    recording(images, rig, [f"rim frame {i}" for i in range(len(images))])
-    found = recording.rim_for(*images[0].shape[:2])
-    return RecordingRim.per_frame() if found is None else found
+    return SoftRecording().find_rim([np.asarray(im) for im in frames.rim_source], rig)
 
 
 def _errors(out: LossAndGrad, targets: np.ndarray) -> Errors:

@@ -178,6 +178,18 @@ class SoftRecording:
             return RecordingRim.per_frame()
         return self.rims.get((height, width))
 
+    def find_rim(self, images: list[np.ndarray], rig: Rig) -> RecordingRim:
+        """The rim the first :data:`RIM_FRAMES` of ``images`` (one size) vote for, as
+        :meth:`__call__` finds it, without measuring the frames again with it (per-frame where
+        they show no common circle or the rig's rectangle lies off them)."""
+        height, width = images[0].shape[:2]
+        if rect_problem(rig.confidence_rect, height, width) is not None:
+            return RecordingRim.per_frame()
+        run = _Run(rig, self.uncertainty, None, self.segmenter)
+        first = images[:RIM_FRAMES]
+        own = run.finish(first, run.prepare(first, RecordingRim.per_frame()))
+        return _vote(own, len(first))
+
     def __call__(
         self,
         images: list[np.ndarray],
