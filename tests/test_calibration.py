@@ -37,6 +37,7 @@ from sinkjax.calibration.augment import (
     soft_shadow,
 )
 from sinkjax.rig import Rig, SegmentationParams, load_rig
+from sinkjax.soft.adaptive import default_segmenter
 from sinkjax.soft.batch import SoftRecording
 from sinkjax.soft.rim import RecordingRim
 
@@ -295,6 +296,16 @@ FAKE_SHAPE = (2, 8, 8, 3)  # a shape the real estimator never sees here (separat
 FAKE_RIG = Rig(wheel_radius_mm=100.0, confidence_rect=(0, 0, 2, 2))
 
 
+def _stand_in(monkeypatch: pytest.MonkeyPatch, measure) -> None:
+    """The loss measures with ``measure`` (a stand-in for the estimator) and the default mask
+    of the thresholds it is given (as the estimator's own mask would be)."""
+
+    def measure_and_mask(image, seg, *, rect, **kw):
+        return measure(image, seg, rect=rect, **kw), default_segmenter(seg)(image, rect)
+
+    monkeypatch.setattr(L, "measure_and_mask", measure_and_mask)
+
+
 @pytest.fixture
 def fake_measure(monkeypatch: pytest.MonkeyPatch):
     """A cheap smooth stand-in for the estimator: sinkage 40 P_d(S), theta1 60 P_d(H)."""
@@ -311,7 +322,7 @@ def fake_measure(monkeypatch: pytest.MonkeyPatch):
             params=jnp.asarray([4.0, 4.0, 3.0, 0, 0, 0, 0, 0, 0]),
         )
 
-    monkeypatch.setattr(L, "measure", measure)
+    _stand_in(monkeypatch, measure)
     # No rim to find in the stand-in's blank frames (and no real estimator to compile).
     monkeypatch.setattr(O, "labelled_rim", lambda frames, rig, rim: RecordingRim.per_frame())
     _clear_loss_caches()
@@ -389,7 +400,7 @@ def test_one_compiled_loss_serves_every_rig(fake_measure, monkeypatch: pytest.Mo
             params=jnp.asarray([4.0, 4.0, 3.0, 0, 0, 0, 0, 0, 0]),
         )
 
-    monkeypatch.setattr(L, "measure", measure)
+    _stand_in(monkeypatch, measure)
     _clear_loss_caches()
     frames = C.LabelledFrames(
         np.zeros(FAKE_SHAPE, np.uint8), np.array([[28.0, np.nan, np.nan]] * 2), ("a", "b")
@@ -424,11 +435,16 @@ def test_gradient_compiled_in_background_is_not_compiled_again(fake_measure) -> 
     seg = SegmentationParams(p_d_sat=0.6, p_a_sat=1.6)
     args = (C.to_raw(seg), jnp.asarray(frames.images), jnp.asarray(frames.targets))
     rig = dict(rect=(0, 0, 2, 2), travel="right", wheel_radius_mm=100.0)
-    CL.compile_in_background(*args, jax.random.key(0), None, **rig).join()
-    assert compiles, "the thread compiled nothing"
+    # As calibrate() starts it before the rim is found: per_frame() has any rim's shapes.
+    found = RecordingRim.fixed(1.0, 1.0, 2.0, 0.1)
+    key = jax.random.key(0)
+    CL.compile_in_background(*args, key, RecordingRim.per_frame(), value=True, **rig).join()
+    assert len(compiles) >= 2, "the threads did not compile the loss and its gradient"
     before = len(compiles)
-    out = C.loss_and_grad(*args, jax.random.key(0), None, **rig)
+    out = C.loss_and_grad(*args, key, found, **rig)
+    alone = C.loss_value(*args, found, **rig)
     assert len(compiles) == before  # found compiled
+    assert float(alone.loss) == pytest.approx(float(out.loss), rel=1e-12)
     expected = (2 * C.pseudo_huber(4.0) + C.pseudo_huber(3.0) + 2 * C.pseudo_huber(2.0)) / 5
     assert float(out.loss) == pytest.approx(float(expected), rel=1e-12)
 
@@ -470,10 +486,10 @@ def test_calibrate_converges_on_stand_in_and_is_deterministic(fake_measure) -> N
 
 
 def test_failing_frames_get_a_surrogate_gradient(fake_measure, monkeypatch) -> None:
-    real = L.measure
+    real = L.measure_and_mask  # the fixture's stand-in
 
     def picky(image, seg, **kw):  # measures nothing unless P_d(S) > 0.6: flat loss at 0.5
-        est = real(image, seg, **kw)
+        est, _ = real(image, seg, **kw)
         return types.SimpleNamespace(**{**vars(est), "status": jnp.where(seg.p_d_sat > 0.6, 0, 1)})
 
     calls = []
@@ -483,7 +499,7 @@ def test_failing_frames_get_a_surrogate_gradient(fake_measure, monkeypatch) -> N
         return 1.0 - C.from_raw(raw_now[0]).p_d_sat
 
     raw_now = [C.to_raw(SegmentationParams())]
-    monkeypatch.setattr(L, "measure", picky)
+    _stand_in(monkeypatch, picky)
     monkeypatch.setattr(L, "boundary_contrast", contrast)
     _clear_loss_caches()
     out = fake_loss(fake_frames())
@@ -519,13 +535,13 @@ def test_boundary_contrast_is_zero_for_an_edge_at_the_labelled_line() -> None:
 def test_calibrate_backs_off_when_a_step_lands_where_frames_fail(
     fake_measure, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    real = L.measure
+    real = L.measure_and_mask  # the fixture's stand-in
 
     def cliff(image, seg, **kw):  # the optimum P_d(S) = 0.7 lies just before a failure region
-        est = real(image, seg, **kw)
+        est, _ = real(image, seg, **kw)
         return types.SimpleNamespace(**{**vars(est), "status": jnp.where(seg.p_d_sat < 0.72, 0, 3)})
 
-    monkeypatch.setattr(L, "measure", cliff)
+    _stand_in(monkeypatch, cliff)
     monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
     _clear_loss_caches()
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=80, learning_rate=0.5, patience=80, grid=None)
@@ -546,13 +562,13 @@ def test_calibrate_keeps_the_best_step_and_stops_early(fake_measure) -> None:
 def test_grid_start_escapes_a_plateau_and_is_never_worse_than_the_grid(
     fake_measure, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    real = L.measure
+    real = L.measure_and_mask  # the fixture's stand-in
 
     def plateau(image, seg, **kw):  # nothing measures unless P_d(S) > 0.6: flat loss below
-        est = real(image, seg, **kw)
+        est, _ = real(image, seg, **kw)
         return types.SimpleNamespace(**{**vars(est), "status": jnp.where(seg.p_d_sat > 0.6, 0, 3)})
 
-    monkeypatch.setattr(L, "measure", plateau)
+    _stand_in(monkeypatch, plateau)
     monkeypatch.setattr(L, "boundary_contrast", lambda *a, **k: 0.0)
     _clear_loss_caches()
     stuck = C.calibrate(fake_frames(), FAKE_RIG, steps=30, grid=None, polish_measurements=0)
@@ -576,7 +592,14 @@ def test_zero_steps_is_the_grid_search_alone_without_a_gradient(
     def no_gradient(*args: object, **kwargs: object) -> None:
         raise AssertionError("a gradient was asked for with steps=0")
 
-    monkeypatch.setattr(O, "compile_in_background", no_gradient)
+    compile_loss = O.compile_in_background
+
+    def loss_alone(*args: object, gradient: bool = True, **kwargs: object) -> CL.Compiling:
+        if gradient:
+            no_gradient()
+        return compile_loss(*args, gradient=gradient, **kwargs)
+
+    monkeypatch.setattr(O, "compile_in_background", loss_alone)
     monkeypatch.setattr(O, "loss_and_grad", no_gradient)
     res = C.calibrate(fake_frames(), FAKE_RIG, steps=0)
     assert res.losses == (res.loss_after,) and res.best_step == 0

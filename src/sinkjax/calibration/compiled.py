@@ -6,8 +6,9 @@ so one compiled function serves every rig of an image size and number of labelle
 gradient is traced with a failed implicit solve as NaN (:func:`solve_failures_as_nan`):
 without a Python callback in it, it enters JAX's persistent compilation cache, and a second
 calibration of a size already seen compiles nothing. :func:`compile_in_background` compiles the
-gradient on another thread while the grid is scored with the loss alone (the first calibration
-of a size: compiling the two at once on two cores).
+loss on another thread while the recording's rim is found, then the gradient while the grid is
+scored with the loss alone (the first calibration of a size: compiling beside the work on two
+cores).
 """
 
 from __future__ import annotations
@@ -164,21 +165,55 @@ def loss_value(
     return _loss_value(raw, images_u8, targets, rim, rig)
 
 
+class Compiling:
+    """Compiles running on daemon threads (:func:`compile_in_background`): the loss's, then the
+    gradient's. Two calls of one function would compile it twice at once: wait first."""
+
+    def __init__(self, loss: threading.Thread | None, gradient: threading.Thread | None) -> None:
+        self._loss, self._gradient = loss, gradient
+
+    def loss_ready(self) -> None:
+        """Wait until the loss alone is compiled (or its compile failed)."""
+        if self._loss is not None:
+            self._loss.join()
+
+    def join(self) -> None:
+        """Wait until everything asked for is compiled (or failed)."""
+        self.loss_ready()
+        if self._gradient is not None:
+            self._gradient.join()
+
+
 def compile_in_background(
-    *args: object, augment_config: AugmentConfig | None = None, **rig: object
-) -> threading.Thread:
+    *args: object,
+    augment_config: AugmentConfig | None = None,
+    value: bool = False,
+    gradient: bool = True,
+    **rig: object,
+) -> Compiling:
     """Start compiling :func:`loss_and_grad` for its arguments ``args`` and ``rig`` (its rig
     keywords ``rect``, ``travel``, ``wheel_radius_mm``; and its augmented variant, with
-    ``augment_config``) on a daemon thread, which ends when it is compiled. A later call with
-    arguments of the same shapes then finds it compiled (in memory). Only the time changes: a
-    compile that fails here fails again, with its error, in the call."""
+    ``augment_config``) on a daemon thread, which ends when it is compiled; with ``value``
+    :func:`loss_value` before it, on a thread of its own (calibration compiles it while the rim
+    is found); without ``gradient`` that alone. ``rim`` (the fifth of ``args``) need only have
+    the shapes of the rim the calls will get (``RecordingRim.per_frame()`` has them). A later
+    call with arguments of the same shapes then finds them compiled (in memory). Only the time
+    changes: a compile that fails here fails again, with its error, in the call."""
     raw, images_u8, targets, key, rim = args
     arrays = loss_rig(
         rig["rect"], rig["travel"], rig["wheel_radius_mm"], None, rig.get("encoding", "linear"),  # type: ignore[arg-type]
     )  # fmt: skip
     variants = [(False, DEFAULT_CONFIG)] + ([(True, augment_config)] if augment_config else [])
 
+    def loss() -> None:
+        try:
+            _loss_value.lower(raw, images_u8, targets, rim, arrays).compile()
+        except Exception:  # reported by the call that needs it
+            return
+
     def work() -> None:
+        if first is not None:
+            first.join()  # one compile at a time: the rim is being found on the other core
         try:
             with solve_failures_as_nan():
                 for use_augment, config in variants:
@@ -188,6 +223,15 @@ def compile_in_background(
         except Exception:  # reported by the call that needs it
             return
 
-    thread = threading.Thread(target=work, name="sinkjax-compile-loss", daemon=True)
-    thread.start()
-    return thread
+    first = (
+        threading.Thread(target=loss, name="sinkjax-compile-loss", daemon=True) if value else None
+    )
+    second = (
+        threading.Thread(target=work, name="sinkjax-compile-gradient", daemon=True)
+        if gradient
+        else None
+    )
+    for thread in (first, second):
+        if thread is not None:
+            thread.start()
+    return Compiling(first, second)

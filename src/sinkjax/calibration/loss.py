@@ -30,8 +30,12 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, UInt8
 
 from ..geometry import travel_sign
 from ..rig import SEGMENTATION_KEYS, SegmentationParams
-from ..soft.adaptive import default_segmenter
-from ..soft.estimator import MIN_BOUNDARY_POINTS, SoftEstimate, measure, measure_from_mask
+from ..soft.estimator import (
+    MIN_BOUNDARY_POINTS,
+    SoftEstimate,
+    measure_and_mask,
+    measure_from_mask,
+)
 from ..soft.rim import RecordingRim
 from ..soft.segmentation import Rect
 from ..status import Status
@@ -191,12 +195,11 @@ def frame_loss(
     frame's own. The rig's numbers may be Python values or arrays (``rect`` an int array of 4,
     ``travel`` the sign +1.0 / -1.0, ``srgb`` a 0/1 flag), traced as in
     :func:`sinkjax.soft.estimator.measure`."""
-    seg = from_raw(raw)
-    est = measure(
-        image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim, srgb=srgb
-    )
-    # The mask measure() made (the default segmenter): the contrast term looks at the same one.
-    mask = default_segmenter(seg)(image, rect)
+    # The contrast term looks at the mask the frame was measured with (made once).
+    est, mask = measure_and_mask(
+        image, from_raw(raw), rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm, rim=rim,
+        srgb=srgb,
+    )  # fmt: skip
     sign = travel_sign(travel) if isinstance(travel, str) else travel
     return _estimate_loss(est, mask, target, sign, wheel_radius_mm)
 
@@ -249,10 +252,19 @@ def _estimate_loss(
     circle = jax.lax.stop_gradient(est.params[:3])
     usable = contact & ~ok & jnp.all(jnp.isfinite(circle)) & (circle[2] > 1.0)
     safe_circle = jnp.where(usable, circle, jnp.asarray([0.0, 0.0, 2.0], circle.dtype))
-    contrast = boundary_contrast(
-        mask, safe_circle, target, sign=sign, wheel_radius_mm=wheel_radius_mm
+    # lax.cond: a frame that measures (most, most of the time) skips the full-image strips.
+    contrast = jax.lax.cond(
+        usable,
+        lambda: jnp.asarray(
+            CONTRAST_WEIGHT
+            * boundary_contrast(
+                mask, safe_circle, target, sign=sign, wheel_radius_mm=wheel_radius_mm
+            ),
+            mask.dtype,
+        ),
+        lambda: jnp.zeros((), mask.dtype),
     )
-    loss = loss + jnp.where(usable, CONTRAST_WEIGHT * contrast, 0.0)
+    loss = loss + contrast
     line = jax.lax.stop_gradient(est.params[3:5])
     return loss, FrameLoss(values=values, status=est.status, loss=loss, circle=circle, line=line)
 

@@ -237,7 +237,6 @@ def calibrate(
             f"{steps}, {learning_rate}, {starts}, {polish_measurements}"
         )
     t0 = time.perf_counter()
-    held = labelled_rim(frames, rig, rim)
     images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
     numbers = dict(
         rect=rig.confidence_rect,
@@ -246,6 +245,16 @@ def calibrate(
         encoding=rig.encoding,
     )
     key = jax.random.key(seed)
+    dt = jnp.result_type(float)
+    raw0 = to_raw(rig.segmentation).astype(dt)
+    # The loss compiles on another core while the rim is found (every rim has per_frame()'s
+    # shapes), then the gradient while the grid is scored with the loss alone.
+    compiling = compile_in_background(
+        raw0, images, targets, key, RecordingRim.per_frame(), **numbers,
+        augment_config=augment_config if augment else None, value=True, gradient=bool(steps),
+    )  # fmt: skip
+    held = labelled_rim(frames, rig, rim)
+    compiling.loss_ready()
 
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
         return loss_and_grad(r, images, targets, k, held, **numbers, **augmenting)  # type: ignore[arg-type]
@@ -257,13 +266,6 @@ def calibrate(
         k = jax.random.fold_in(key, step)
         return call(r, k, use_augment=True, config=augment_config).grad
 
-    dt = jnp.result_type(float)
-    raw0 = to_raw(rig.segmentation).astype(dt)
-    # The gradient compiles on another core while the grid is scored with the loss alone.
-    compiling = compile_in_background(
-        raw0, images, targets, key, held, **numbers,
-        augment_config=augment_config if augment else None,
-    ) if steps else None  # fmt: skip
     first = value(raw0)
     points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
     base = rig.segmentation.as_dict()
@@ -293,8 +295,7 @@ def calibrate(
     runs = []
     for i in chosen:
         # Grid points (and the start) were scored without the gradient: the descent takes it.
-        if compiling is not None:
-            compiling.join()
+        compiling.join()
         start = (points[i][0], call(points[i][0]) if steps else points[i][1])
         d = _descend(call, *start, probe, learning_rate, patience, aug, on_step)
         points += d.trail

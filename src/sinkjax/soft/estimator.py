@@ -302,11 +302,45 @@ def measure(
     linearly (``experiments/encoding.py``). The segmentation sees the image as given.
     Never raises for image content: problems are reported in ``status``.
     """
+    return measure_and_mask(
+        image,
+        seg,
+        rect=rect,
+        travel=travel,
+        wheel_radius_mm=wheel_radius_mm,
+        uncertainty=uncertainty,
+        open_radius_px=open_radius_px,
+        settings=settings,
+        rim_range_px=rim_range_px,
+        rim=rim,
+        segmenter=segmenter,
+        srgb=srgb,
+    )[0]
+
+
+def measure_and_mask(
+    image: Float[Array, "H W 3"],
+    seg: SegmentationParams,
+    *,
+    rect: Rect,
+    travel: str | Float[Array, ""] = "right",
+    wheel_radius_mm: float | Float[Array, ""] = 1.0,
+    uncertainty: UncertaintyModel | None = None,
+    open_radius_px: int = 0,
+    settings: SoftSettings | None = None,
+    rim_range_px: tuple[ArrayLike, ArrayLike] | None = None,
+    rim: RecordingRim | None = None,
+    segmenter: Segmenter | None = None,
+    srgb: bool | Float[Array, ""] = False,
+) -> tuple[SoftEstimate, Float[Array, "H W"]]:
+    """:func:`measure`, and the soft wheel mask it measured: what the calibration loss's
+    surrogate term looks at, without making the mask a second time (about a fifth of a 640x480
+    frame's cost)."""
     segmenter = default_segmenter(seg) if segmenter is None else segmenter
     mask = segmenter(image, rect) if rim is None else segmenter.with_rim(image, rect, rim.disc())
     if open_radius_px > 0:
         mask = soft_open(mask, open_radius_px)
-    return measure_from_mask(
+    est = measure_from_mask(
         image,
         mask,
         travel=travel,
@@ -319,6 +353,7 @@ def measure(
         srgb=srgb,
         blur_px=segmenter.blur_px(image, rect),
     )
+    return est, mask
 
 
 def measure_from_mask(
