@@ -303,19 +303,10 @@ def measure(
     Never raises for image content: problems are reported in ``status``.
     """
     return measure_and_mask(
-        image,
-        seg,
-        rect=rect,
-        travel=travel,
-        wheel_radius_mm=wheel_radius_mm,
-        uncertainty=uncertainty,
-        open_radius_px=open_radius_px,
-        settings=settings,
-        rim_range_px=rim_range_px,
-        rim=rim,
-        segmenter=segmenter,
-        srgb=srgb,
-    )[0]
+        image, seg, rect=rect, travel=travel, wheel_radius_mm=wheel_radius_mm,
+        uncertainty=uncertainty, open_radius_px=open_radius_px, settings=settings,
+        rim_range_px=rim_range_px, rim=rim, segmenter=segmenter, srgb=srgb,
+    )[0]  # fmt: skip
 
 
 def measure_and_mask(
@@ -333,9 +324,8 @@ def measure_and_mask(
     segmenter: Segmenter | None = None,
     srgb: bool | Float[Array, ""] = False,
 ) -> tuple[SoftEstimate, Float[Array, "H W"]]:
-    """:func:`measure`, and the soft wheel mask it measured: what the calibration loss's
-    surrogate term looks at, without making the mask a second time (about a fifth of a 640x480
-    frame's cost)."""
+    """:func:`measure`, and the soft wheel mask it measured (the calibration loss looks at it
+    again; making it costs about a third of measuring a 640x480 frame)."""
     segmenter = default_segmenter(seg) if segmenter is None else segmenter
     mask = segmenter(image, rect) if rim is None else segmenter.with_rim(image, rect, rim.disc())
     if open_radius_px > 0:
