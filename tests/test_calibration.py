@@ -381,6 +381,16 @@ def test_loss_value_is_the_loss_without_its_gradient(fake_measure) -> None:
     assert float(alone.loss) == pytest.approx(float(full.loss), rel=1e-12)
     np.testing.assert_array_equal(np.asarray(alone.frames.values), np.asarray(full.frames.values))
     assert not np.any(np.asarray(alone.grad)) and np.any(np.asarray(full.grad))
+    # Compiled for one frame: any number of frames, one compile.
+    images, targets = jnp.asarray(frames.images), jnp.asarray(frames.targets)
+    for n in (1, 3):
+        more = C.loss_value(
+            C.to_raw(seg), jnp.concatenate([images] * 2)[:n],
+            jnp.concatenate([targets] * 2)[:n], rect=(0, 0, 2, 2), travel="right",
+            wheel_radius_mm=100.0,
+        )  # fmt: skip
+        assert more.frames.values.shape == (n, 3)
+    assert CL._loss_value._cache_size() == 1
 
 
 def test_one_compiled_loss_serves_every_rig(fake_measure, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -584,6 +594,54 @@ def test_grid_start_escapes_a_plateau_and_is_never_worse_than_the_grid(
     # 0.7 is the only grid value of P_d(S) that measures, and 28 / 40 = 0.7 the optimum.
     assert res.rig.segmentation.as_dict()["p_d_sat"] == pytest.approx(0.7, abs=5e-3)
     assert "best grid point" in res.summary() and "leave-one-out" in res.summary()
+
+
+def test_loss_value_stops_once_the_loss_is_above_its_bound(fake_measure) -> None:
+    # Frame losses (sinkage 20 vs the labels): 8 mm off, 18 mm off, 0 off, over 3 cells.
+    images = jnp.zeros((3, *FAKE_SHAPE[1:]), jnp.uint8)
+    targets = jnp.asarray([[28.0, np.nan, np.nan], [38.0, np.nan, np.nan], [20.0, np.nan, np.nan]])
+    rig = dict(rect=(0, 0, 2, 2), travel="right", wheel_radius_mm=100.0)
+    raw = C.to_raw(SegmentationParams())
+    full = C.loss_value(raw, images, targets, **rig)
+    huber = [float(C.pseudo_huber(e)) for e in (8.0, 18.0, 0.0)]
+    assert float(full.loss) == pytest.approx(sum(huber) / 3, rel=1e-12) and CL.complete(full)
+    # Frame 1 alone is above a bound of 5: frames 0 and 2 are not measured.
+    cut = C.loss_value(raw, images, targets, **rig, bound=5.0, order=[1, 0, 2])
+    assert float(cut.loss) == pytest.approx(huber[1] / 3, rel=1e-12) and huber[1] / 3 > 5.0
+    assert not CL.complete(cut) and list(np.asarray(cut.frames.status)) == [-1, 0, -1]
+    assert np.isnan(np.asarray(cut.frames.loss)[[0, 2]]).all()
+    # A bound the whole loss stays under: every frame, the same numbers.
+    kept = C.loss_value(raw, images, targets, **rig, bound=float(full.loss), order=[1, 0, 2])
+    assert CL.complete(kept) and float(kept.loss) == pytest.approx(float(full.loss), rel=1e-12)
+    np.testing.assert_array_equal(np.asarray(kept.frames.values), np.asarray(full.frames.values))
+
+
+def test_pruning_changes_nothing_but_the_frames_measured(
+    fake_measure, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    measured: list[int] = []  # one entry per frame measured by the compiled loss
+
+    class Counted:
+        def __init__(self, real):
+            self.real = real
+
+        def __call__(self, *args, **kwargs):
+            measured.append(1)
+            return self.real(*args, **kwargs)
+
+        def __getattr__(self, name):  # lower(), for the background compile
+            return getattr(self.real, name)
+
+    monkeypatch.setattr(CL, "_loss_value", Counted(CL._loss_value))
+    results, counts = [], []
+    for prune in (False, True):
+        measured.clear()
+        results.append(C.calibrate(fake_frames(theta2=30.0), FAKE_RIG, steps=6, prune=prune))
+        counts.append(sum(measured))
+    whole, pruned = results
+    assert pruned.rig == whole.rig and pruned.loss_after == whole.loss_after
+    assert pruned.grid_best_loss == whole.grid_best_loss and pruned.losses == whole.losses
+    assert counts[1] < 0.8 * counts[0], counts  # grid points that cannot be lowest stop early
 
 
 def test_zero_steps_is_the_grid_search_alone_without_a_gradient(
@@ -1056,7 +1114,7 @@ def test_polish_walks_down_a_staircase_and_never_goes_up() -> None:
     # 0.5 and 0.25 from 0. Raw 4..6 (temperatures, veto) are never moved.
     target = np.array([1.0, -0.5, 0.75])
 
-    def score(raw):
+    def score(raw, bound=math.inf):  # a staircase: nothing to stop early
         r = np.asarray(raw)
         loss = float(np.sum(np.round(np.abs(r[:3] - target) / 0.125)) + 0.1 * abs(r[6]))
         return types.SimpleNamespace(loss=jnp.asarray(loss))

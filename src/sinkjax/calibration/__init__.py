@@ -15,7 +15,12 @@ from .augment import (
     AugmentConfig as AugmentConfig,
     augment as augment,
 )
-from .checks import Checks as Checks, Errors as Errors, run_checks as run_checks
+from .checks import (
+    CalibrationResult as CalibrationResult,
+    Checks as Checks,
+    Errors as Errors,
+    run_checks as run_checks,
+)
 from .compiled import loss_and_grad as loss_and_grad, loss_value as loss_value
 from .labels import (
     LABEL_COLUMNS as LABEL_COLUMNS,
@@ -39,6 +44,5 @@ from .loss import (
 from .optimise import (
     BACKTRACK as BACKTRACK,
     GRID as GRID,
-    CalibrationResult as CalibrationResult,
     calibrate as calibrate,
 )

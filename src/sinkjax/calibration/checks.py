@@ -1,5 +1,6 @@
 """Checks on a finished calibration: did it converge, do the labelled frames agree, and how well
-does it do on a frame it did not choose with (leave-one-out)?
+does it do on a frame it did not choose with (leave-one-out)? And the result they are reported
+in (:class:`CalibrationResult`).
 
 All three are computed from what the optimiser already evaluated (every grid point and every
 Adam step keeps each frame's loss and values), so they cost no extra pass through the estimator:
@@ -24,6 +25,7 @@ import math
 
 import numpy as np
 
+from ..rig import Rig
 from ..status import Status
 from .labels import LabelledFrames
 
@@ -164,3 +166,57 @@ def run_checks(
         rel = err[0] / t[0] if np.isfinite(t[0]) and t[0] > 0 else math.nan
         loo.append((name, float(err[0]), float(rel), float(err[1]), float(err[2]), ok))
     return Checks(converged, note, tuple(disagreeing), tuple(loo))
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationResult:
+    """The calibrated rig, the losses, and the labelled frames' errors before and after.
+
+    ``losses`` is the loss at every Adam step (``losses[0]`` that of the rig's own thresholds);
+    the calibrated rig is the one of step ``best_step``.
+    """
+
+    rig: Rig
+    losses: tuple[float, ...]
+    best_step: int
+    before: Errors
+    after: Errors
+    seconds: float
+    loss_before: float = math.nan  # the rig's own thresholds
+    after_loss: float = math.nan
+    grid_best_loss: float = math.nan  # the best grid point's (NaN without a grid)
+    polished: tuple[float, float, int] | None = None  # the polish's loss from, to; measurements
+    checks: Checks | None = None
+    rim: str = "per-frame rim"  # what the labelled frames were measured with, in words
+
+    @property
+    def loss_after(self) -> float:
+        """The calibrated rig's loss (the lowest seen anywhere, grid points included)."""
+        return self.after_loss
+
+    def summary(self) -> str:
+        params = ", ".join(f"{k} = {v:.4g}" for k, v in self.rig.segmentation.as_dict().items())
+        return "\n".join(
+            [
+                f"loss {self.loss_before:.4g} -> {self.loss_after:.4g} (best at step "
+                f"{self.best_step} of {len(self.losses) - 1}; {self.seconds:.0f} s)",
+                f"median |error| before: {self.before.line()}",
+                f"median |error| after:  {self.after.line()}",
+                f"labelled frames measured with the {self.rim}",
+                *(
+                    []
+                    if self.polished is None
+                    else [
+                        f"polish (each point measured with the rim it finds): loss "
+                        f"{self.polished[0]:.4g} -> {self.polished[1]:.4g} in "
+                        f"{self.polished[2]} measurements"
+                    ]
+                ),
+                f"[segmentation] {params}",
+                *(
+                    []
+                    if self.checks is None
+                    else self.checks.lines(self.grid_best_loss, self.after_loss)
+                ),
+            ]
+        )

@@ -5,20 +5,20 @@ gradient descent from a mask that is far off can sit on a plateau. So calibratio
 coarse grid over P_d/P_a of hue and saturation (:data:`GRID`, 81 points around the defaults,
 plus the rig's own point; its best few again with the soil/background veto relaxed,
 :data:`VETO_RELAXED`) by the loss alone (``compiled.loss_value``, while the gradient compiles on
-another thread), then runs Adam from the best few grid points (a short probe each, the rest of
-the steps from the best probe) and keeps the best point seen anywhere, scored as ``sinkjax
-estimate`` will measure it (with the rim its own thresholds find), and polishes it by a compass
-search that measures every point so (``rescore.polish``): the result is never worse, on the
-labelled frames, than the grid's best point. Each descent keeps its best point, goes back there
-with a smaller step when a step lands where frames fail, and stops once the loss has not
-improved for a while.
+another thread; every point on one frame first, then the lowest completed first, a point whose
+frames so far already put it above the lowest it must beat dropped: ``rescore.score_pruned``),
+then runs Adam from the best few grid points (a short probe each, the rest of the steps from the
+best probe) and keeps the best point seen anywhere, scored as ``sinkjax estimate`` will measure
+it (with the rim its own thresholds find), and polishes it by a compass search that measures
+every point so (``rescore.polish``): the result is never worse, on the labelled frames, than the
+grid's best point. Each descent keeps its best point, goes back there with a smaller step when a
+step lands where frames fail, and stops once the loss has not improved for a while.
 ``checks.py`` then says whether it converged, which labelled frames disagree with the rest, and
 the leave-one-out error.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
 import logging
@@ -37,16 +37,18 @@ from ..rig import Rig, SegmentationParams
 from ..soft.batch import SoftRecording
 from ..soft.rim import RecordingRim
 from .augment import DEFAULT_CONFIG, AugmentConfig
-from .checks import Checks, Errors, run_checks
-from .compiled import compile_in_background, loss_and_grad, loss_value
+from .checks import CalibrationResult, Errors, run_checks
+from .compiled import compile_in_background, complete, loss_and_grad, loss_value
 from .labels import LabelledFrames
 from .loss import LossAndGrad, to_raw
 from .rescore import (
+    N_RESCORED,
     POLISH_MEASUREMENTS,
     _as_estimate_measures,
     _distinct_lowest,
     _with,
     polish_best,
+    score_pruned,
 )
 
 BACKTRACK = 2.0  # a loss above this times the best so far sends Adam back to the best point
@@ -67,60 +69,6 @@ N_STARTS = 3
 VETO_RELAXED = 1.0
 # This many of the lowest grid points (one of each loss) are scored again with the veto relaxed.
 N_RELAXED = 6
-
-
-@dataclasses.dataclass(frozen=True)
-class CalibrationResult:
-    """The calibrated rig, the losses, and the labelled frames' errors before and after.
-
-    ``losses`` is the loss at every Adam step (``losses[0]`` that of the rig's own thresholds);
-    the calibrated rig is the one of step ``best_step``.
-    """
-
-    rig: Rig
-    losses: tuple[float, ...]
-    best_step: int
-    before: Errors
-    after: Errors
-    seconds: float
-    loss_before: float = math.nan  # the rig's own thresholds
-    after_loss: float = math.nan
-    grid_best_loss: float = math.nan  # the best grid point's (NaN without a grid)
-    polished: tuple[float, float, int] | None = None  # the polish's loss from, to; measurements
-    checks: Checks | None = None
-    rim: str = "per-frame rim"  # what the labelled frames were measured with, in words
-
-    @property
-    def loss_after(self) -> float:
-        """The calibrated rig's loss (the lowest seen anywhere, grid points included)."""
-        return self.after_loss
-
-    def summary(self) -> str:
-        params = ", ".join(f"{k} = {v:.4g}" for k, v in self.rig.segmentation.as_dict().items())
-        return "\n".join(
-            [
-                f"loss {self.loss_before:.4g} -> {self.loss_after:.4g} (best at step "
-                f"{self.best_step} of {len(self.losses) - 1}; {self.seconds:.0f} s)",
-                f"median |error| before: {self.before.line()}",
-                f"median |error| after:  {self.after.line()}",
-                f"labelled frames measured with the {self.rim}",
-                *(
-                    []
-                    if self.polished is None
-                    else [
-                        f"polish (each point measured with the rim it finds): loss "
-                        f"{self.polished[0]:.4g} -> {self.polished[1]:.4g} in "
-                        f"{self.polished[2]} measurements"
-                    ]
-                ),
-                f"[segmentation] {params}",
-                *(
-                    []
-                    if self.checks is None
-                    else self.checks.lines(self.grid_best_loss, self.after_loss)
-                ),
-            ]
-        )
 
 
 class _Descent(NamedTuple):
@@ -197,6 +145,7 @@ def calibrate(
     starts: int = N_STARTS,
     rim: str | RecordingRim = "recording",
     polish_measurements: int = POLISH_MEASUREMENTS,
+    prune: bool = True,
 ) -> CalibrationResult:
     """Tune ``rig.segmentation`` to labelled frames: grid, then Adam; returns the calibrated rig.
 
@@ -226,6 +175,10 @@ def calibrate(
     (each frame's own rim where the frames show no common circle); "frame": each frame's own rim
     (a camera that moves relative to the wheel); a :class:`~sinkjax.soft.rim.RecordingRim`: that
     rim.
+    ``prune``: a grid point (or a polish step) whose frames measured so far already put its loss
+    above the lowest it would have to beat stops there (``compiled.loss_value``'s ``bound``):
+    the same result, sooner; the checks' leave-one-out then sees only the points measured on
+    every frame. False: every point on every frame.
     Raises ValueError for ``steps`` < 0, ``learning_rate`` <= 0, ``starts`` < 1,
     ``polish_measurements`` < 0 or another ``rim``.
     """
@@ -259,27 +212,36 @@ def calibrate(
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
         return loss_and_grad(r, images, targets, k, held, **numbers, **augmenting)  # type: ignore[arg-type]
 
-    def value(r: Array) -> LossAndGrad:
-        return loss_value(r, images, targets, held, **numbers)  # type: ignore[arg-type]
+    def value(r: Array, bound: float = math.inf, given: LossAndGrad | None = None) -> LossAndGrad:
+        return loss_value(
+            r, images, targets, held, **numbers, bound=bound, order=order, given=given,  # type: ignore[arg-type]
+        )  # fmt: skip
+
+    # Frames whose loss was highest at the rig's own point first (rescore.score_pruned).
+    order: list[int] | None = None
+    exact = max(N_RELAXED, starts, 2 + N_RESCORED) if prune else 0
 
     def noisy(r: Array, step: int) -> Array:
         k = jax.random.fold_in(key, step)
         return call(r, k, use_augment=True, config=augment_config).grad
 
     first = value(raw0)
+    order = [int(i) for i in np.argsort(-np.asarray(first.frames.loss), kind="stable")]
     points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
+
     base = rig.segmentation.as_dict()
-    for combo in itertools.product(*(grid or {}).values()):
-        seg = SegmentationParams(**{**base, **dict(zip(grid or {}, combo, strict=True))})  # type: ignore[arg-type]
-        r = to_raw(seg).astype(dt)
-        points.append((r, value(r)))
+    raws = [
+        to_raw(SegmentationParams(**{**base, **dict(zip(grid or {}, c, strict=True))})).astype(dt)  # type: ignore[arg-type]
+        for c in itertools.product(*(grid or {}).values())
+    ]
+    points += score_pruned(points, raws, value, exact)
     n_grid = len(points)
     if grid:
         best = _distinct_lowest(points, range(n_grid), N_RELAXED)
         relaxed = float(to_raw(SegmentationParams(veto_fraction=jnp.asarray(VETO_RELAXED)))[6])
         for i in best:
             r = points[i][0].at[6].set(relaxed)
-            points.append((r, value(r)))
+            points += score_pruned(points, [r], value, exact)
         n_grid = len(points)
     chosen = _distinct_lowest(points, range(n_grid), starts) if grid else [0]
     probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))
@@ -326,16 +288,17 @@ def calibrate(
         i_best, polished = polish_best(
             points,
             i_best,
-            lambda r: (
-                loss_value(r, images, targets, rim_of(r), **numbers)  # type: ignore[arg-type]
+            lambda r, b: (
+                loss_value(r, images, targets, rim_of(r), **numbers, bound=b, order=order)  # type: ignore[arg-type]
                 if own
-                else value(r)
+                else value(r, b)
             ),
             polish_measurements,
             lambda _: bar.update(),
         )
         bar.close()
     raw_best, out_best = points[i_best]
+    whole = [i for i, (_, o) in enumerate(points) if complete(o)]
     calibrated = _with(rig, raw_best)
     # The best grid point as it will be measured (the start's rim where none was scored again).
     on_grid = [float(points[i][1].loss) for i in range(1, n_grid) if i in measured] or [
@@ -353,11 +316,12 @@ def calibrate(
         after_loss=float(out_best.loss),
         grid_best_loss=grid_best,
         polished=polished,
+        # From the points measured on every frame (the chosen one is).
         checks=run_checks(
-            [np.asarray(o.frames.loss) for _, o in points],
-            [np.asarray(o.frames.values) for _, o in points],
-            [np.asarray(o.frames.status) for _, o in points],
-            i_best,
+            [np.asarray(points[i][1].frames.loss) for i in whole],
+            [np.asarray(points[i][1].frames.values) for i in whole],
+            [np.asarray(points[i][1].frames.status) for i in whole],
+            whole.index(i_best),
             frames,
             last.losses,
             last.stopped_early,

@@ -50,6 +50,32 @@ def _distinct_lowest(points: list[tuple[Array, LossAndGrad]], indices: range, k:
     return chosen
 
 
+def score_pruned(
+    points: list[tuple[Array, LossAndGrad]],
+    raws: list[Array],
+    value: Callable[[Array, float, LossAndGrad | None], LossAndGrad],
+    exact: int,
+) -> list[tuple[Array, LossAndGrad]]:
+    """``raws`` scored by ``value(raw, bound, given)`` (``compiled.loss_value``: frames one by
+    one, stopping once the loss is above ``bound``, resuming ``given``), in their order, where
+    only the ``exact`` lowest (one of each loss, :func:`_distinct_lowest`) among them and
+    ``points`` are needed exactly. Each is measured on the first frame (a bound of -inf), then
+    completed lowest first, each with the bound the points completed so far set: the lowest
+    ``exact`` value. A point above it cannot be among them, whatever its other frames measure,
+    and stops there (a lower bound above the bound stands for its loss). ``exact`` 0: every
+    point on every frame."""
+    if not exact:
+        return [(r, value(r, math.inf, None)) for r in raws]
+    firsts = [value(r, -math.inf, None) for r in raws]
+    scored: dict[int, LossAndGrad] = {}
+    for j in sorted(range(len(raws)), key=lambda j: float(firsts[j].loss)):
+        done = points + [(raws[k], o) for k, o in scored.items()]
+        lowest = _distinct_lowest(done, range(len(done)), exact)
+        bound = float(done[lowest[-1]][1].loss) if len(lowest) == exact else math.inf
+        scored[j] = value(raws[j], bound, firsts[j])
+    return [(r, scored[j]) for j, r in enumerate(raws)]
+
+
 def _as_estimate_measures(
     points: list[tuple[Array, LossAndGrad]],
     i_best: int,
@@ -103,13 +129,15 @@ def _as_estimate_measures(
 def polish(
     raw: Array,
     out: LossAndGrad,
-    score: Callable[[Array], LossAndGrad],
+    score: Callable[[Array, float], LossAndGrad],
     measurements: int = POLISH_MEASUREMENTS,
     on_step: Callable[[float], None] | None = None,
 ) -> list[tuple[Array, LossAndGrad]]:
     """Every point a compass search from ``raw`` (loss ``out``) measured, in order.
 
-    ``score`` measures a point as ``sinkjax estimate`` will (with the rim its thresholds find).
+    ``score(raw, bound)`` measures a point as ``sinkjax estimate`` will (with the rim its
+    thresholds find); where its loss is above ``bound`` (the best so far: it cannot be chosen)
+    it may stop early and return a lower bound above it (``compiled.loss_value``).
     The descents follow the gradient of a loss whose rim is held at the start's; a rig with other
     thresholds finds a rim a pixel larger or smaller, and with it a sinkage off by as much
     (rendered hard_lowlight, seed 20263: the start's rim 183.6 px, the grid's best points' 184.6-
@@ -130,7 +158,7 @@ def polish(
                 if len(trail) >= measurements:
                     break
                 cand = best_raw.at[i].add(sign * step)
-                o = score(cand)
+                o = score(cand, best * (1.0 - TIE))
                 trail.append((cand, o))
                 if on_step is not None:
                     on_step(float(o.loss))
@@ -145,7 +173,7 @@ def polish(
 def polish_best(
     points: list[tuple[Array, LossAndGrad]],
     i_best: int,
-    score: Callable[[Array], LossAndGrad],
+    score: Callable[[Array, float], LossAndGrad],
     measurements: int = POLISH_MEASUREMENTS,
     on_step: Callable[[float], None] | None = None,
 ) -> tuple[int, tuple[float, float, int]]:
