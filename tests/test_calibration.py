@@ -1133,6 +1133,28 @@ def test_polish_walks_down_a_staircase_and_never_goes_up() -> None:
     assert min(float(o.loss) for _, o in R.polish(at_min, score(at_min), score, 100)) >= 0.03
 
 
+def test_polish_never_returns_a_point_it_stopped_early() -> None:
+    from sinkjax.calibration import rescore as R
+
+    # A measurement stopped early returns a lower bound just above its bound (the tightest a
+    # pruned loss can be), marked incomplete; the lowest point is always a complete one.
+    def loss(raw):
+        return float(np.sum(np.abs(np.asarray(raw)[:4] - 0.3)))
+
+    def score(raw, bound=math.inf):
+        full = loss(raw)
+        if full > bound:
+            return types.SimpleNamespace(loss=jnp.asarray(bound * (1 + 1e-9)), complete=False)
+        return types.SimpleNamespace(loss=jnp.asarray(full), complete=True)
+
+    start = jnp.zeros(7)
+    points = [(start, score(start))]
+    i_best, (before, after, n) = R.polish_best(points, 0, score, 40)
+    assert points[i_best][1].complete and after < before and 0 < n <= 40
+    assert after == pytest.approx(loss(points[i_best][0]))
+    assert any(not o.complete for _, o in points)  # some were stopped early
+
+
 _LOWER_GRADIENT = """
 import jax, jax.numpy as jnp
 from sinkjax import calibration as C

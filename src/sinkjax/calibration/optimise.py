@@ -298,7 +298,7 @@ def calibrate(
         )
         bar.close()
     raw_best, out_best = points[i_best]
-    whole = [i for i, (_, o) in enumerate(points) if complete(o)]
+    whole = [i for i, (_, o) in enumerate(points) if complete(o) or i == i_best]
     calibrated = _with(rig, raw_best)
     # The best grid point as it will be measured (the start's rim where none was scored again).
     on_grid = [float(points[i][1].loss) for i in range(1, n_grid) if i in measured] or [

@@ -158,7 +158,8 @@ def polish(
                 if len(trail) >= measurements:
                     break
                 cand = best_raw.at[i].add(sign * step)
-                o = score(cand, best * (1.0 - TIE))
+                # Bound: the best so far, so that a point stopped early is never the lowest.
+                o = score(cand, best)
                 trail.append((cand, o))
                 if on_step is not None:
                     on_step(float(o.loss))
