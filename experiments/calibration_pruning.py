@@ -22,28 +22,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from common import runs
+from loss_mask_once import N_FRAMES, recording
 
-from sinkjax import synth as S
-from sinkjax.calibration import LabelledFrames, calibrate, compiled as CL
-from sinkjax.soft.batch import RIM_FRAMES
-from sinkjax.synth.recording import frame_seed
+from sinkjax.calibration import calibrate, compiled as CL
 
 RESULTS = Path(__file__).parent / "results"
-N_FRAMES = 18
-
-
-def recording(preset: str, seed: int) -> tuple[LabelledFrames, object]:
-    rng = np.random.default_rng([seed, 1])
-    scenes = S.recording_scenes(rng, N_FRAMES, preset=preset, width=640, height=480)
-    rendered = [S.render(s, seed=frame_seed(seed, i)) for i, s in enumerate(scenes)]
-    images = np.stack([im for im, _ in rendered])
-    truth = np.array([[t.sinkage_mm, t.theta1_deg, t.theta2_deg] for _, t in rendered])
-    lab = list(range(0, N_FRAMES, 3))
-    names = tuple(f"{i:02d}" for i in lab)
-    frames = LabelledFrames(images[lab], truth[lab], names, rim_images=images[:RIM_FRAMES])
-    return frames, S.rig_for(scenes[0])
 
 
 def _loo(res: object) -> str:
@@ -73,7 +57,10 @@ def main(argv: list[str] | None = None) -> int:
             return getattr(self.real, name)
 
     CL._loss_value = Counted(CL._loss_value)  # type: ignore[assignment]
-    recs = {preset: recording(preset, args.seed) for preset in args.presets.split(",")}
+    recs = {}
+    for preset in args.presets.split(","):
+        rec = recording(preset, args.seed)  # as loss_mask_once.py: every third of 18 labelled
+        recs[preset] = (rec["frames"], rec["rig"])
     first = next(iter(recs))
     t0 = time.perf_counter()
     calibrate(*recs[first], steps=args.steps, seed=args.seed)

@@ -2,7 +2,8 @@
 
 :func:`loss_and_grad` and :func:`loss_value` are :func:`~sinkjax.calibration.loss.frame_losses`
 compiled with the rig's numbers as traced arrays (:class:`~sinkjax.calibration.loss.LossRig`),
-so one compiled function serves every rig of an image size and number of labelled frames. The
+so one compiled function serves every rig of an image size (the gradient: and number of
+labelled frames; the loss alone is compiled for one frame and called frame by frame). The
 gradient is traced with a failed implicit solve as NaN (:func:`solve_failures_as_nan`):
 without a Python callback in it, it enters JAX's persistent compilation cache, and a second
 calibration of a size already seen compiles nothing. :func:`compile_in_background` compiles the
@@ -98,7 +99,8 @@ def loss_rig(
     )
 
 
-# No rig statics: compiled once per image size, frame count and augmentation setting.
+# No rig statics: compiled once per image size, frame count and augmentation setting (the loss
+# alone: loss_value calls it with one frame at a time).
 @jit(static_argnames=("use_augment", "config"))
 def _loss_and_grad(
     raw: Array, images_u8: Array, targets: Array, key: PRNGKeyArray, rim: RecordingRim | None,
