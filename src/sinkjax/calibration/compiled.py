@@ -184,11 +184,10 @@ def loss_value(
     n = int(images_u8.shape[0])
     if n == 0:
         raise ValueError("loss_value needs at least one frame")
-    cells = np.isfinite(np.asarray(targets))
-    n_cells = max(int(cells.sum()), 1)
     # Frames in and results out as NumPy: op-by-op JAX calls here (slices, concatenations) cost
     # about 0.5 ms each, 5-10 s over a calibration's 200 calls.
     images, labels = np.asarray(images_u8), np.asarray(targets)
+    n_cells = max(int(np.isfinite(labels).sum()), 1)
     outs: dict[int, FrameLoss] = {}
     if given is not None:
         for k in np.flatnonzero(np.asarray(given.frames.status) >= 0).tolist():
