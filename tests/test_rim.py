@@ -160,3 +160,19 @@ def test_gradients_pass_through_a_fixed_recording_rim(rendered) -> None:
     fd = (float(value_grad(x0 + h, image)[0]) - float(value_grad(x0 - h, image)[0])) / (2 * h)
     assert np.isfinite(g) and abs(fd) > 0.01  # mm per unit of P_d: a gradient to check
     assert g == pytest.approx(fd, rel=0.05, abs=1e-3)
+
+
+def test_rows_do_not_depend_on_frames_measured_side_by_side(
+    rendered, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two frames at a time on two cores (sinkjax.xla.side_by_side) or one after another: the
+    same rows, in the same order."""
+    images, _, rig = rendered("clean", n=6, seed=23)
+    names = [f"f{i}" for i in range(6)]
+    rows = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("SINKJAX_FRAME_THREADS", threads)
+        rows[threads] = SoftRecording()(images, rig, names)
+    assert [r.image for r in rows["2"]] == names
+    assert rows["1"] == rows["2"]
+    assert sum(r.status is Status.OK for r in rows["2"]) >= 4  # frames that measured

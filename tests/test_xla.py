@@ -149,3 +149,32 @@ def test_map_frames_gives_each_frames_own_result(
     np.testing.assert_allclose(grads, 0.5 / np.sqrt([2.0, 9.0, 1e6]), rtol=1e-9)
     alone = [int(_newton_sqrt(a)[1]) for a in frames]
     assert [int(k) for k in iterations] == alone and len(set(alone)) == 3
+
+
+def test_side_by_side_keeps_the_order_and_runs_the_first_row_alone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import threading
+    import time
+
+    monkeypatch.setenv("SINKJAX_FRAME_THREADS", "2")
+    seen: list[tuple[int, str]] = []
+
+    def slow(i: int, j: int) -> int:
+        seen.append((i, threading.current_thread().name))
+        time.sleep(0.02 * (5 - i))  # later rows finish first
+        return 10 * i + j
+
+    assert xla.side_by_side(slow, range(5), range(5, 10)) == [5, 16, 27, 38, 49]
+    assert seen[0] == (0, threading.current_thread().name)  # the first row, in the caller
+    assert {name for _, name in seen[1:]} <= {f"{xla._POOL_NAME}_{k}" for k in range(2)}
+    # Called from a pool thread (a point's frames within points side by side): no deadlock.
+    nested = xla.side_by_side(lambda i: xla.side_by_side(lambda k: i * k, range(3)), range(3))
+    assert nested == [[0, 0, 0], [0, 1, 2], [0, 2, 4]]
+    monkeypatch.setenv("SINKJAX_FRAME_THREADS", "1")
+    seen.clear()
+    assert xla.side_by_side(slow, range(3), range(3)) == [0, 11, 22]
+    assert {name for _, name in seen} == {threading.current_thread().name}
+    monkeypatch.setenv("SINKJAX_FRAME_THREADS", "two")
+    with pytest.raises(ValueError, match="SINKJAX_FRAME_THREADS must be a whole number"):
+        xla.side_by_side(slow, range(2), range(2))

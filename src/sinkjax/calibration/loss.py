@@ -72,19 +72,22 @@ def _inv_softplus(y: float) -> float:
 
 def to_raw(seg: SegmentationParams) -> Float[Array, " 7"]:
     """Unconstrained raw vector (order :data:`RAW_NAMES`) of valid segmentation parameters."""
-    d = seg.as_dict()
-    return jnp.asarray(
-        [
-            _logit(d["p_d_hue"]),
-            _inv_softplus(d["p_a_hue"] - 1.0),
-            _logit(d["p_d_sat"]),
-            _inv_softplus(d["p_a_sat"] - 1.0),
-            _inv_softplus(d["temperature_hue_deg"] / _TEMPERATURE_UNIT_HUE_DEG),
-            _inv_softplus(d["temperature_sat"] / _TEMPERATURE_UNIT_SAT),
-            # A veto of 0 (none wanted: a rig may say so) sits just above it.
-            _inv_softplus(max(d["veto_fraction"], 1e-6) / _VETO_UNIT),
-        ]
-    )
+    return jnp.asarray(raw_values(seg.as_dict()))
+
+
+def raw_values(d: dict[str, float]) -> list[float]:
+    """:func:`to_raw` of the parameters ``d`` (``SegmentationParams.as_dict()``) as Python
+    floats: a grid of many points is made without a JAX call per point."""
+    return [
+        _logit(d["p_d_hue"]),
+        _inv_softplus(d["p_a_hue"] - 1.0),
+        _logit(d["p_d_sat"]),
+        _inv_softplus(d["p_a_sat"] - 1.0),
+        _inv_softplus(d["temperature_hue_deg"] / _TEMPERATURE_UNIT_HUE_DEG),
+        _inv_softplus(d["temperature_sat"] / _TEMPERATURE_UNIT_SAT),
+        # A veto of 0 (none wanted: a rig may say so) sits just above it.
+        _inv_softplus(max(d["veto_fraction"], 1e-6) / _VETO_UNIT),
+    ]
 
 
 def from_raw(raw: Float[Array, " 7"]) -> SegmentationParams:

@@ -40,7 +40,7 @@ from .augment import DEFAULT_CONFIG, AugmentConfig
 from .checks import CalibrationResult, Errors, run_checks
 from .compiled import compile_in_background, complete, loss_and_grad, loss_value
 from .labels import LabelledFrames
-from .loss import LossAndGrad, to_raw
+from .loss import LossAndGrad, raw_values, to_raw
 from .rescore import (
     N_RESCORED,
     POLISH_MEASUREMENTS,
@@ -230,18 +230,20 @@ def calibrate(
     points: list[tuple[Array, LossAndGrad]] = [(raw0, first)]
 
     base = rig.segmentation.as_dict()
+    # Each value as SegmentationParams holds it (in the default float dtype), without a JAX
+    # call per point.
+    held_as = {k: [float(np.asarray(v, dt)) for v in vs] for k, vs in (grid or {}).items()}
     raws = [
-        to_raw(SegmentationParams(**{**base, **dict(zip(grid or {}, c, strict=True))})).astype(dt)  # type: ignore[arg-type]
-        for c in itertools.product(*(grid or {}).values())
+        jnp.asarray(raw_values({**base, **dict(zip(held_as, c, strict=True))}), dt)
+        for c in itertools.product(*held_as.values())
     ]
     points += score_pruned(points, raws, value, exact)
     n_grid = len(points)
     if grid:
         best = _distinct_lowest(points, range(n_grid), N_RELAXED)
         relaxed = float(to_raw(SegmentationParams(veto_fraction=jnp.asarray(VETO_RELAXED)))[6])
-        for i in best:
-            r = points[i][0].at[6].set(relaxed)
-            points += score_pruned(points, [r], value, exact)
+        loosened = [points[i][0].at[6].set(relaxed) for i in best]
+        points += score_pruned(points, loosened, value, exact)
         n_grid = len(points)
     chosen = _distinct_lowest(points, range(n_grid), starts) if grid else [0]
     probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))

@@ -19,12 +19,16 @@ from jaxtyping import Array
 
 from ..rig import Rig, SegmentationParams
 from ..soft.rim import RecordingRim
+from ..xla import side_by_side
 from .loss import LossAndGrad, from_raw
 
 # After the descents the grid points are scored again, lowest first, as ``sinkjax estimate``
 # measures them (with the rim each finds itself) beside the descents' best, until the next one's
 # loss is above the best so far, at most this many.
 N_RESCORED = 6
+# Points completed together (each with the bound of the points completed before them): the
+# same points on any machine, side by side where it has the cores (sinkjax.xla.side_by_side).
+SIDE_BY_SIDE = 2
 TIE = 1e-4  # points whose losses agree this closely (relative) are taken to be one mask
 # The polish: a compass search over the raw thresholds a grid search spans (P_d(H), P_a(H),
 # P_d(S), P_a(S); see ``loss.RAW_NAMES``), from steps of POLISH_STEP raw units (about half the
@@ -60,19 +64,23 @@ def score_pruned(
     one, stopping once the loss is above ``bound``, resuming ``given``), in their order, where
     only the ``exact`` lowest (one of each loss, :func:`_distinct_lowest`) among them and
     ``points`` are needed exactly. Each is measured on the first frame (a bound of -inf), then
-    completed lowest first, each with the bound the points completed so far set: the lowest
-    ``exact`` value. A point above it cannot be among them, whatever its other frames measure,
-    and stops there (a lower bound above the bound stands for its loss). ``exact`` 0: every
-    point on every frame."""
+    completed lowest first, :data:`SIDE_BY_SIDE` at a time, each with the bound the points
+    completed before them set: the lowest ``exact`` value. A point above it cannot be among
+    them, whatever its other frames measure, and stops there (a lower bound above the bound
+    stands for its loss). ``exact`` 0: every point on every frame. Points are measured side by
+    side on a CPU's cores (:func:`~sinkjax.xla.side_by_side`); which are completed does not
+    depend on how many cores there are."""
     if not exact:
-        return [(r, value(r, math.inf, None)) for r in raws]
-    firsts = [value(r, -math.inf, None) for r in raws]
+        return list(zip(raws, side_by_side(lambda r: value(r, math.inf, None), raws), strict=True))
+    firsts = side_by_side(lambda r: value(r, -math.inf, None), raws)
     scored: dict[int, LossAndGrad] = {}
-    for j in sorted(range(len(raws)), key=lambda j: float(firsts[j].loss)):
+    order = sorted(range(len(raws)), key=lambda j: float(firsts[j].loss))
+    for pair in (order[k : k + SIDE_BY_SIDE] for k in range(0, len(order), SIDE_BY_SIDE)):
         done = points + [(raws[k], o) for k, o in scored.items()]
         lowest = _distinct_lowest(done, range(len(done)), exact)
         bound = float(done[lowest[-1]][1].loss) if len(lowest) == exact else math.inf
-        scored[j] = value(raws[j], bound, firsts[j])
+        outs = side_by_side(lambda j, b=bound: value(raws[j], b, firsts[j]), pair)
+        scored.update(zip(pair, outs, strict=True))
     return [(r, scored[j]) for j, r in enumerate(raws)]
 
 

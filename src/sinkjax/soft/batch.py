@@ -25,7 +25,7 @@ from jaxtyping import Array
 from ..result import FEATURES_INTENSITY, FrameResult, failed
 from ..rig import Rig, rect_problem, rim_hint_range_px
 from ..status import Status
-from ..xla import frames_in_lockstep, jit
+from ..xla import frames_in_lockstep, jit, side_by_side
 from .adaptive import default_segmenter
 from .estimator import Prepared, RigArrays, SoftEstimate, finish, prepare, rechoose, rig_arrays
 from .hough import radius_range_px
@@ -329,11 +329,11 @@ class _Run:
                 ("rechoose", (out, rim)),
             ):
                 warm(self._fn(name, shapes), shapes)
-        return [fn(f, self.segmenter, self.arrays, rim) for f in frames]
+        return side_by_side(lambda f: fn(f, self.segmenter, self.arrays, rim), frames)
 
     def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
         fn = warmed(self._fn("rechoose", (prepared[0], rim)))
-        return [fn(p, rim) for p in prepared]
+        return side_by_side(lambda p: fn(p, rim), prepared)
 
     def with_rim(
         self, images: list[np.ndarray], prepared: list[Prepared], rim: RecordingRim
@@ -355,7 +355,7 @@ class _Run:
     def finish(self, images: list[np.ndarray], prepared: list[Prepared]) -> SoftEstimate:
         frames = self._frames(images)
         fn = warmed(self._fn("finish", (frames[0], prepared[0], self.arrays)))
-        each = [fn(f, p, self.arrays) for f, p in zip(frames, prepared, strict=True)]
+        each = side_by_side(lambda f, p: fn(f, p, self.arrays), frames, prepared)
         out = jax.tree_util.tree_map(np.asarray, each[0]) if self.vmap else _stack(each)
         return self._recount(frames, prepared, out, len(images))  # type: ignore[arg-type]
 
@@ -374,7 +374,7 @@ class _Run:
             new = jax.tree_util.tree_map(np.asarray, fn(frames[0], prepared[0], self.arrays))
             rows = [jax.tree_util.tree_map(lambda a, i=i: a[i], new) for i in again]
         else:
-            rows = [fn(frames[i], prepared[i], self.arrays) for i in again]
+            rows = side_by_side(lambda i: fn(frames[i], prepared[i], self.arrays), again.tolist())
         leaves, tree = jax.tree_util.tree_flatten(out)
         leaves = [np.array(a) for a in leaves]
         for i, row in zip(again, rows, strict=True):
