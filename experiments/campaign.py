@@ -250,11 +250,13 @@ def report(res: dict, seconds: float) -> str:
         "## Reading",
         "",
         "- A new rig no longer compiles (the rig's numbers are traced), and a new process "
-        "neither traces nor compiles the soft method: it loads the method exported per image "
-        "size (`jax.export`, `sinkjax.app.executables`) and its executable from the persistent "
-        "cache. What is left per image size and process is that load (about a second, most "
-        "of it deserialising the executable) and the jax import per process; compare the "
-        "compile times in the summary lines of section 2.",
+        "neither traces, lowers nor compiles the soft method: it loads the method exported "
+        "per image size (`jax.export`, for its shapes) and its compiled executable, both kept "
+        "by `sinkjax.app.executables` (the finish half on a thread while the first half loads "
+        "and runs, `soft/warm.py`). What is left per image size and process is deserialising "
+        "the two executables (0.5 and 0.9-1.2 s at 640x480: about 600 and 900 kernels, each "
+        "its own object file to link) and the jax import per process; compare the compile "
+        "times in the summary lines of section 2.",
         "- `--workers 2` on this 2-core machine shares the two cores between the driver and "
         "two worker processes, each of which imports jax and loads the functions of the image "
         "sizes it is given (each size prefers one worker); starting the cluster costs seconds. "

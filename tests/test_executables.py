@@ -55,7 +55,7 @@ def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> Non
         assert unusable == [str(p) for p in paths]
         assert again == fresh
         # Rewritten by the last run: the next loads it silently. Finish and rechoose load on
-        # the warm-up thread (soft.warm) while prepare runs; their calls compile nothing.
+        # the warm-up thread (soft.warm) while prepare runs; their calls compile nothing more.
         E.set_compiled_provider(ExecutableCache(tmp_path))
         compiles: list[str] = []
 
@@ -71,7 +71,12 @@ def test_corrupt_file_recompiles_with_identical_numbers(tmp_path, caplog) -> Non
         finally:
             jax.monitoring.unregister_event_time_span_listener(listen)
         assert not [m for m in caplog.messages if "exported function" in m]
-        assert sorted(compiles) == ["MainThread", "sinkjax-warm", "sinkjax-warm"]
+        # What has a compiled file (written where the session's JAX cache compiled it afresh,
+        # see the next test) compiles nothing; the rest compiles once, finish and rechoose on
+        # the warm-up thread.
+        kept = {p.stem for p in tmp_path.glob("*.exe")}
+        assert len(compiles) + len(kept) == 3
+        assert compiles.count("MainThread") <= 1
     finally:
         E.set_compiled_provider(None)
     assert fresh == reference
@@ -87,3 +92,72 @@ def test_key_depends_on_shapes_dtypes_and_structure() -> None:
     assert cache_key("f", a) != cache_key("f", (np.zeros((4, 6, 3), np.uint8), a[1]))
     assert cache_key("f", a) != cache_key("f", (np.zeros((4, 5, 3), np.float32), a[1]))
     assert cache_key("f", a) != cache_key("f", (a[0], (np.float64(1.0), np.float64(1.0))))
+
+
+# Run in a fresh process (JAX decides once per process whether its persistent cache is on): the
+# soft method on two frames with the command line's caches in argv[1] ("off": none), printing
+# the numbers, whether each executable came from disk, and the fresh compiles of it.
+_RUN = """
+import json, sys
+import jax, numpy as np
+from sinkjax import synth as S
+from sinkjax.app import executables as X
+from sinkjax.app.compile_cache import enable_compile_cache
+from sinkjax.soft import batch as E
+
+if sys.argv[1] != "off":
+    enable_compile_cache(sys.argv[1])
+loaded = []
+plain = X.ExecutableCache._load_compiled
+def spy(self, key):
+    out = plain(self, key)
+    loaded.append(out is not None)
+    return out
+X.ExecutableCache._load_compiled = spy
+scene = S.recording_scenes(np.random.default_rng(3), 1, width=200, height=150)[0]
+images = [S.render(scene, seed=s)[0] for s in (0, 1)]
+rows = E.estimate_batch(images, S.rig_for(scene), ["a", "b"])
+numbers = [[r.status, r.sinkage_mm, r.theta1_deg, r.theta2_deg, r.radius_px] for r in rows]
+print(json.dumps({"numbers": numbers, "loaded": sorted(loaded)}))
+"""
+
+
+def _run(cache: object) -> dict:
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-c", _RUN, str(cache)], capture_output=True, text=True, check=True
+    )
+    return json.loads(proc.stdout.strip().splitlines()[-1])  # type: ignore[no-any-return]
+
+
+@pytest.mark.heavy
+@pytest.mark.slow
+def test_compiled_files_load_with_identical_numbers_and_only_fresh_compiles_are_kept(
+    tmp_path,
+) -> None:
+    reference = _run("off")["numbers"]
+    cache = tmp_path / "cache"
+    cold = _run(cache)
+    exes = sorted((cache / "executables").glob("*.exe"))
+    # prepare and finish take seconds to compile: kept; rechoose is under JAX's threshold.
+    assert len(exes) == 2
+    assert {p.stem for p in exes} <= {p.stem for p in (cache / "executables").glob("*.bin")}
+    warm = _run(cache)
+    assert warm["loaded"].count(True) == 2
+    # A corrupt file is removed and compiled again (from JAX's cache): the same numbers.
+    exes[0].write_bytes(exes[0].read_bytes()[:1000])
+    spoilt = _run(cache)
+    assert spoilt["loaded"].count(True) == 1
+    assert not exes[0].exists()
+    # ... and an executable JAX loaded from its own cache is not kept (it would not serialise
+    # whole): the file stays missing, the numbers stay the same.
+    again = _run(cache)
+    assert again["loaded"].count(True) == 1
+    assert not exes[0].exists()
+    assert cold["numbers"] == reference
+    assert warm["numbers"] == reference
+    assert spoilt["numbers"] == reference
+    assert again["numbers"] == reference

@@ -174,15 +174,17 @@ def _forget_pool() -> None:
 os.register_at_fork(after_in_child=_forget_pool)
 
 
-def side_by_side(fun: Callable[..., Any], *columns: Sequence[Any]) -> list[Any]:
+def side_by_side(
+    fun: Callable[..., Any], *columns: Sequence[Any], alone: bool = False
+) -> list[Any]:
     """``[fun(*row) for row in zip(*columns)]`` (frames, or calibration's candidate points),
     each result computed (blocked on), the rows after the first on :func:`frame_threads`
     threads. One compiled call leaves a CPU's second core mostly idle (most of XLA's fused
     loops run on one thread), so two frames side by side take 0.75-0.85x the time of one after
     the other (640x480 on 2 cores). The first row runs alone, so that a function that still has
     to compile compiles once. The same numbers as one after another: each call is the same
-    compiled function on its own inputs. Called from the pool's own threads: one after
-    another."""
+    compiled function on its own inputs. Called from the pool's own threads, or with
+    ``alone`` (the other core is busy, e.g. loading the next function): one after another."""
     import concurrent.futures
 
     import jax
@@ -197,7 +199,7 @@ def side_by_side(fun: Callable[..., Any], *columns: Sequence[Any]) -> list[Any]:
     # Called from one of the pool's own threads (frames of a point measured side by side):
     # one after another there, or the pool would wait on itself.
     nested = threading.current_thread().name.startswith(_POOL_NAME)
-    if len(rows) < 2 or threads < 2 or nested:
+    if len(rows) < 2 or threads < 2 or nested or alone:
         return [run(r) for r in rows]
     with _POOL_LOCK:
         if _frame_pool is None or _frame_pool[0] != threads:

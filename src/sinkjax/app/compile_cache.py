@@ -4,9 +4,10 @@ The soft method compiles once per image size (the rig's numbers are traced, see
 :class:`sinkjax.soft.estimator.RigArrays`). Within a process that compile is reused; the
 persistent cache keeps it on disk so that the next run, or the next worker process of a
 parallel run, loads it in about a second instead of compiling for tens; the soft method's
-executables are kept there too (:mod:`sinkjax.app.executables`), so that a new process need not
-even trace it. The cache is set up by the command line (``sinkjax estimate``, ``sinkjax demo``),
-never on importing the library: a program that uses sinkjax keeps its own JAX configuration.
+exported and compiled functions are kept there too (:mod:`sinkjax.app.executables`), so that a
+new process need not even trace or lower it. The cache is set up by the command line
+(``sinkjax estimate``, ``sinkjax demo``), never on importing the library: a program that uses
+sinkjax keeps its own JAX configuration.
 """
 
 from __future__ import annotations

@@ -1,19 +1,23 @@
-"""The soft method's traced and lowered functions kept on disk: a new process skips tracing.
+"""The soft method's compiled functions kept on disk: a new process neither traces nor lowers it.
 
 JAX's persistent compilation cache (:mod:`sinkjax.app.compile_cache`) skips the backend compile,
 but a new process still traces and lowers the whole method to find its cache entry: seconds per
-image size, paid again by every run and every worker. Here the method exported with
-``jax.export`` (a StableHLO module) is written once per function and argument shapes, and a
-later process loads it and goes straight to the (cached) compile. (Serialising the CPU
-executable itself, ``jax.experimental.serialize_executable``, crashed on loading with this
-jaxlib; ``Exported.serialize`` needs the optional ``flatbuffers``: the Exported is pickled.)
+image size, paid again by every run and every worker. Here each measuring function is kept twice
+per function and argument shapes: exported with ``jax.export`` (a StableHLO module: its output
+shapes, and the call that runs under tracing) and as the compiled executable itself
+(``jax.experimental.serialize_executable``). A later process loads both, skipping tracing,
+lowering and the cache-key hash (about 0.1 s a function, all of it holding Python's lock while
+the other half loads). A deserialised executable needs the CPU's LAPACK kernels registered,
+which lowering does as a side effect; :func:`_backend_ready` lowers a trivial exported call
+once per process for that (without it the first call crashed). ``Exported.serialize`` needs the
+optional ``flatbuffers``: the Exported is pickled.
 
 A file is named by a hash of everything that could make it wrong for this process: the jax,
 jaxlib and equinox versions, sinkjax's version and the hash of its source files, the backend and
 its devices, the function, and the arguments' pytree structure, shapes and dtypes. The file
 carries a checksum of its contents; a file that is missing, corrupt, truncated or unreadable is
-compiled afresh (with a log line) and rewritten, so a bad cache can cost time but never change a
-number or fail a run.
+made afresh (with a log line) and rewritten, so a bad cache can cost time but never change a
+number or fail a run: the executable loaded is the one the export compiles to, byte for byte.
 """
 
 from __future__ import annotations
@@ -26,8 +30,8 @@ import logging
 import os
 import pickle
 import tempfile
+import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +41,7 @@ log = logging.getLogger("sinkjax")
 
 # The first line of every file; a new layout gets a new number (old files are then ignored).
 MAGIC = b"sinkjax-executable 1\n"
+COMPILED_MAGIC = b"sinkjax-compiled 1\n"
 # Reported as part of the run's compile time (sinkjax.app.compile_cache.CompileClock).
 LOAD_EVENT = "/sinkjax/exported_load_duration"
 
@@ -107,31 +112,187 @@ class _Unpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"unknown reference {pid!r}")
 
 
+_READY_LOCK = threading.Lock()
+_ready_platforms: set[str] = set()
+
+
+def _backend_ready() -> None:
+    """Lower a trivial exported call once per process (two threads asking: the second waits):
+    what ``jax.export`` initialises for a platform before its first call (on a CPU, the LAPACK
+    kernels a deserialised executable calls, about 0.1 s) is then ready."""
+    import jax
+    import numpy as np
+
+    with _READY_LOCK:
+        if jax.default_backend() in _ready_platforms:
+            return
+        exported = jax.export.export(jax.jit(_identity))(np.float32(0))
+        jax.jit(exported.call).lower(np.float32(0))
+        _ready_platforms.add(jax.default_backend())
+
+
+def _identity(x: Any) -> Any:
+    return x
+
+
+# JAX records this event when it has compiled a function afresh and writes it to its persistent
+# cache. An executable JAX loaded from that cache does not serialise whole (with this jaxlib it
+# lost kernels: "Function ... not found" at its first call), so only a fresh compile is kept.
+FRESH_EVENT = "/jax/compilation_cache/cache_misses"
+_fresh = threading.local()
+
+
+def _count_fresh(event: str, **kwargs: object) -> None:
+    if event == FRESH_EVENT:
+        _fresh.count = getattr(_fresh, "count", 0) + 1
+
+
+@functools.cache
+def _listen_for_fresh() -> None:
+    import jax
+
+    jax.monitoring.register_event_listener(_count_fresh)
+
+
+def _compile_fresh(jitted: Any, args: tuple[Any, ...]) -> tuple[Any, bool]:
+    """``jitted`` compiled for ``args``, and whether this thread compiled it afresh (rather than
+    loading it from JAX's persistent cache)."""
+    _listen_for_fresh()
+    before = getattr(_fresh, "count", 0)
+    compiled = jitted.lower(*args).compile()
+    return compiled, getattr(_fresh, "count", 0) > before
+
+
+def _has_tracer(args: tuple[Any, ...]) -> bool:
+    import jax
+
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+
+
+class Loaded:
+    """One measuring function for one argument shape: the compiled executable, loaded from
+    disk or compiled (and then written) at the first call or :meth:`load`, whichever comes
+    first (thread-safe: a load started ahead on another thread is waited for, not repeated).
+    Under tracing (``jax.eval_shape``, an enclosing ``jit``) it is the exported call."""
+
+    def __init__(self, cache: ExecutableCache, key: str, exported: Any, args: tuple[Any, ...]):
+        self._cache, self._key, self._args = cache, key, args
+        self.jitted = jit(exported.call)
+        self._compiled: Any = None
+        self._lock = threading.Lock()
+
+    def load(self) -> Any:
+        """The compiled executable (a ``jax.stages.Compiled``)."""
+        with self._lock:
+            if self._compiled is None:
+                compiled = self._cache.compiled(self._key, self.jitted, self._args)
+                # Only running it needs the platform ready: its loading overlaps the other
+                # thread's.
+                _backend_ready()
+                self._compiled = compiled
+            return self._compiled
+
+    def __call__(self, *args: Any) -> Any:
+        if _has_tracer(args):
+            return self.jitted(*args)
+        return self.load()(*args)
+
+
 class ExecutableCache:
     """A :data:`sinkjax.soft.batch.CompiledProvider`: each measuring function exported
-    (``jax.export``: traced and lowered) once per argument shapes and kept in ``directory``
-    (created when first written); a later process loads it instead of tracing the method.
+    (``jax.export``: traced and lowered) and compiled once per argument shapes and kept in
+    ``directory`` (created when first written); a later process loads both instead of tracing
+    and lowering the method (:class:`Loaded`).
 
-    Loaded or fresh, the function runs as ``jax.jit(exported.call)``: one code path, so a run
-    with a cache file gives the numbers of a run without one. The compile of that call is then
-    a hit in JAX's persistent cache."""
+    Loaded or fresh, the function runs the executable that ``jax.jit(exported.call)`` compiles
+    to (through JAX's persistent cache, where that is on): one code path, so a run with cache
+    files gives the numbers of a run without them."""
 
     def __init__(self, directory: str | Path) -> None:
         self.directory = Path(directory)
-        self._ready: dict[str, Callable[..., Any]] = {}
+        self._ready: dict[str, Loaded] = {}
 
-    def __call__(self, name: str, fn: Any, args: tuple[Any, ...]) -> Callable[..., Any]:
+    def __call__(self, name: str, fn: Any, args: tuple[Any, ...]) -> Loaded:
         key = cache_key(name, args)
         ready = self._ready.get(key)
         if ready is None:
             exported = self._load(key, args)
             if exported is None:
                 exported = self._export(key, fn, args)
-            ready = self._ready[key] = jit(exported.call)
+            ready = self._ready[key] = Loaded(self, key, exported, args)
         return ready
 
     def path(self, key: str) -> Path:
         return self.directory / f"{key}.bin"
+
+    def compiled_path(self, key: str) -> Path:
+        return self.directory / f"{key}.exe"
+
+    def compiled(self, key: str, jitted: Any, args: tuple[Any, ...]) -> Any:
+        """The executable of ``jitted`` on ``args``: loaded from :meth:`compiled_path`, else
+        compiled (a hit in JAX's persistent cache where that has it) and, where compiled
+        afresh, written there."""
+        loaded = self._load_compiled(key)
+        if loaded is not None:
+            return loaded
+        compiled, fresh = _compile_fresh(jitted, args)
+        if not fresh:  # loaded by JAX from its cache: not kept (FRESH_EVENT)
+            return compiled
+        try:
+            from jax.experimental import serialize_executable
+
+            blob, in_tree, out_tree = serialize_executable.serialize(compiled)
+            buffer = io.BytesIO()
+            _Pickler(buffer).dump((key, blob, in_tree, out_tree))
+            self._write(self.compiled_path(key), COMPILED_MAGIC, buffer.getvalue())
+        except Exception as e:  # the run goes on with the executable compiled here
+            log.info("compiled function not written to %s (%s)", self.directory, e)
+        return compiled
+
+    def _load_compiled(self, key: str) -> Any:
+        import jax
+        from jax.experimental import serialize_executable
+
+        path = self.compiled_path(key)
+        if not path.exists():
+            return None
+        start = time.time()
+        try:
+            body = self._read(path, COMPILED_MAGIC)
+            stored_key, blob, in_tree, out_tree = _Unpickler(io.BytesIO(body)).load()
+            if stored_key != key:
+                raise ValueError("written for other arguments")
+            device = jax.devices()[0]
+            compiled = serialize_executable.deserialize_and_load(
+                blob, in_tree, out_tree, backend=device.client, execution_devices=[device]
+            )
+        except Exception as e:  # any failure: compile afresh instead
+            log.info("compiled function %s unusable (%s): compiling it again", path, e)
+            # Removed: a compile that JAX loads from its own cache does not rewrite it.
+            path.unlink(missing_ok=True)
+            return None
+        jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
+        return compiled
+
+    @staticmethod
+    def _read(path: Path, magic: bytes) -> bytes:
+        data = path.read_bytes()
+        head, _, body = data[len(magic) :].partition(b"\n")
+        if not data.startswith(magic) or head.decode() != hashlib.sha256(body).hexdigest():
+            raise ValueError("bad header or checksum")
+        return body
+
+    def _write(self, target: Path, magic: bytes, body: bytes) -> None:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        # Written under a temporary name and renamed: a reader (another worker) never sees
+        # half a file.
+        fd, tmp = tempfile.mkstemp(dir=self.directory, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(magic + hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
+            os.replace(tmp, target)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
 
     def _load(self, key: str, args: tuple[Any, ...]) -> Any:
         import jax
@@ -141,10 +302,7 @@ class ExecutableCache:
             return None
         start = time.time()
         try:
-            data = path.read_bytes()
-            head, _, body = data[len(MAGIC) :].partition(b"\n")
-            if not data.startswith(MAGIC) or head.decode() != hashlib.sha256(body).hexdigest():
-                raise ValueError("bad header or checksum")
+            body = self._read(path, MAGIC)
             stored_key, exported = _Unpickler(io.BytesIO(body)).load()
             avals = tuple(jax.typeof(x) for x in jax.tree_util.tree_leaves(args))
             if (
@@ -167,17 +325,7 @@ class ExecutableCache:
             buffer = io.BytesIO()
             # The VJP hook is a closure (not picklable); the command line never differentiates.
             _Pickler(buffer).dump((key, dataclasses.replace(exported, _get_vjp=None)))
-            body = buffer.getvalue()
-            self.directory.mkdir(parents=True, exist_ok=True)
-            # Written under a temporary name and renamed: a reader (another worker) never sees
-            # half a file.
-            fd, tmp = tempfile.mkstemp(dir=self.directory, suffix=".tmp")
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    f.write(MAGIC + hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
-                os.replace(tmp, self.path(key))
-            finally:
-                Path(tmp).unlink(missing_ok=True)
+            self._write(self.path(key), MAGIC, buffer.getvalue())
         except Exception as e:  # the run goes on with the exported function
             log.info("exported function not written to %s (%s)", self.directory, e)
         return exported

@@ -34,7 +34,7 @@ from .rows import frame_result as frame_result
 from .segmenter import Segmenter
 from .settings import SoftSettings
 from .uncertainty import UncertaintyModel
-from .warm import first_time, placed_like, warm, warmed
+from .warm import first_time, loading, placed_like, warm, warmed
 
 log = logging.getLogger("sinkjax")
 
@@ -329,7 +329,10 @@ class _Run:
                 ("rechoose", (out, rim)),
             ):
                 warm(self._fn(name, shapes), shapes)
-        return side_by_side(lambda f: fn(f, self.segmenter, self.arrays, rim), frames)
+        # While a later half loads (it is what the next step waits for), frames one at a time.
+        return side_by_side(
+            lambda f: fn(f, self.segmenter, self.arrays, rim), frames, alone=loading()
+        )
 
     def rechoose(self, prepared: list[Prepared], rim: RecordingRim) -> list[Prepared]:
         fn = warmed(self._fn("rechoose", (prepared[0], rim)))

@@ -1,14 +1,16 @@
 """Loading the soft method's later compiled halves on a thread while the first half runs.
 
-A new process with a warm cache still loads each half's executable from JAX's persistent cache:
-at 640x480 about 0.35 s for ``prepare`` and 0.8-1.0 s for ``finish``, one after the other when
-each is loaded at its first call. :func:`warm` starts such a load on one background thread as
-soon as the arguments' shapes are known (``finish``'s from the exported ``prepare``'s outputs,
-:func:`placed_like`), so it overlaps with ``prepare``'s own load and run; :func:`warmed` waits
-for it before the first call. The compile lands in JAX's own caches (the lowering must be the
-call's: the abstract arguments carry the device placement of real ones), so the call compiles
-nothing; should the load fail, the call compiles as it would have. ``experiments/campaign.py``
-measures the start-up.
+A new process with a warm cache still loads each half's executable from disk (JAX's persistent
+cache, or the command line's own copy, :mod:`sinkjax.app.executables`): at 640x480 about 0.5 s
+for ``prepare`` and 0.9-1.2 s for ``finish``, one after the other when each is loaded at its
+first call. :func:`warm` starts such a load on one background thread as soon as the arguments'
+shapes are known (``finish``'s from the exported ``prepare``'s outputs, :func:`placed_like`), so
+it overlaps with ``prepare``'s own load and run (which then measures its frames one at a time:
+:func:`loading`, so that the load has a core); :func:`warmed` waits for it before the first
+call. The compile lands in JAX's own caches (the lowering must be the call's: the abstract
+arguments carry the device placement of real ones), or a function with a ``load`` method is
+loaded, so the call compiles nothing; should the load fail, the call compiles as it would have.
+``experiments/campaign.py`` measures the start-up.
 """
 
 from __future__ import annotations
@@ -57,13 +59,18 @@ def placed_like(tree: Any, array: jax.Array) -> Any:
 
 
 def warm(fn: Any, args: tuple[Any, ...]) -> None:
-    """Compile the jitted ``fn`` for the abstract ``args`` on the background thread, once per
-    function; loads run in the order they were asked for."""
+    """Compile the jitted ``fn`` for the abstract ``args`` (or, for a function with a ``load``
+    method, load it) on the background thread, once per function; loads run in the order they
+    were asked for."""
     global _pool
 
     def compile_quietly() -> None:
         try:
-            fn.lower(*args).compile()
+            load = getattr(fn, "load", None)  # an executable kept on disk (app.executables)
+            if load is not None:
+                load()
+            else:
+                fn.lower(*args).compile()
         except Exception as e:  # the call compiles it again
             log.debug("loading %s ahead failed (%s); it compiles when called", fn, e)
 
@@ -71,6 +78,11 @@ def warm(fn: Any, args: tuple[Any, ...]) -> None:
         if _pool is None:
             _pool = ThreadPoolExecutor(1, thread_name_prefix="sinkjax-warm")
         _started[id(fn)] = _pool.submit(compile_quietly)
+
+
+def loading() -> bool:
+    """Whether a load started by :func:`warm` is still running (it has a core to itself)."""
+    return any(not f.done() for f in _started.values())
 
 
 def warmed(fn: Any) -> Any:
