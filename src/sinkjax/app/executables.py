@@ -158,8 +158,9 @@ def _compile_fresh(jitted: Any, args: tuple[Any, ...]) -> tuple[Any, bool]:
     """``jitted`` compiled for ``args``, and whether this thread compiled it afresh (rather than
     loading it from JAX's persistent cache)."""
     _listen_for_fresh()
-    before = getattr(_fresh, "count", 0)
-    compiled = jitted.lower(*args).compile()
+    lowered = jitted.lower(*args)
+    before = getattr(_fresh, "count", 0)  # counted over this module's compile alone
+    compiled = lowered.compile()
     return compiled, getattr(_fresh, "count", 0) > before
 
 
