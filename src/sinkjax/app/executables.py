@@ -18,6 +18,9 @@ its devices, the function, and the arguments' pytree structure, shapes and dtype
 carries a checksum of its contents; a file that is missing, corrupt, truncated or unreadable is
 made afresh (with a log line) and rewritten, so a bad cache can cost time but never change a
 number or fail a run: the executable loaded is the one the export compiles to, byte for byte.
+Only an executable compiled afresh is kept (:data:`FRESH_EVENT`): after an edit of sinkjax that
+leaves the compiled module as it was, JAX's own cache serves the new key, and that directory
+loads through it (tracing and lowering) until its entry goes.
 """
 
 from __future__ import annotations
@@ -129,6 +132,13 @@ def _backend_ready() -> None:
         exported = jax.export.export(jax.jit(_identity))(np.float32(0))
         jax.jit(exported.call).lower(np.float32(0))
         _ready_platforms.add(jax.default_backend())
+
+
+@functools.cache
+def _get_ready_ahead() -> None:
+    # While this thread deserialises (which holds no Python lock), another gets the platform
+    # ready; the first call waits for it (_backend_ready's lock).
+    threading.Thread(target=_backend_ready, name="sinkjax-ready", daemon=True).start()
 
 
 def _identity(x: Any) -> Any:
@@ -257,6 +267,7 @@ class ExecutableCache:
         path = self.compiled_path(key)
         if not path.exists():
             return None
+        _get_ready_ahead()
         start = time.time()
         try:
             body = self._read(path, COMPILED_MAGIC)
