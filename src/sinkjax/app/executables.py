@@ -141,6 +141,16 @@ def _get_ready_ahead() -> None:
     threading.Thread(target=_backend_ready, name="sinkjax-ready", daemon=True).start()
 
 
+def _forget_ready() -> None:
+    # A forked child has none of its parent's threads: a lock held by one would never open.
+    global _READY_LOCK
+    _READY_LOCK = threading.Lock()
+    _get_ready_ahead.cache_clear()
+
+
+os.register_at_fork(after_in_child=_forget_ready)
+
+
 def _identity(x: Any) -> Any:
     return x
 
