@@ -12,15 +12,16 @@ which lowering does as a side effect; :func:`_backend_ready` lowers a trivial ex
 once per process for that (without it the first call crashed). ``Exported.serialize`` needs the
 optional ``flatbuffers``: the Exported is pickled.
 
-A file is named by a hash of everything that could make it wrong for this process: the jax,
-jaxlib and equinox versions, sinkjax's version and the hash of its source files, the backend and
-its devices, the function, and the arguments' pytree structure, shapes and dtypes. The file
-carries a checksum of its contents; a file that is missing, corrupt, truncated or unreadable is
-made afresh (with a log line) and rewritten, so a bad cache can cost time but never change a
-number or fail a run: the executable loaded is the one the export compiles to, byte for byte.
-Only an executable compiled afresh is kept (:data:`FRESH_EVENT`): after an edit of sinkjax that
-leaves the compiled module as it was, JAX's own cache serves the new key, and that directory
-loads through it (tracing and lowering) until its entry goes.
+An export's file is named by a hash of everything that could make it wrong for this process:
+the jax, jaxlib and equinox versions, sinkjax's version and the hash of its source files, the
+backend and its devices, the function, and the arguments' pytree structure, shapes and dtypes.
+A compiled file is named by what it compiles from (:func:`module_key`: the exported module
+without its source locations, its pytrees, jax, jaxlib, the devices and the compile options),
+so an edit of sinkjax that leaves the computation as it was finds it again. Each file carries a
+checksum of its contents; a file that is missing, corrupt, truncated or unreadable is made
+afresh (with a log line), so a bad cache can cost time but never change a number or fail a run:
+the executable loaded is the one the export compiles to, byte for byte. Only an executable
+compiled afresh is kept (:data:`FRESH_EVENT`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import io
 import logging
 import os
 import pickle
+import re
 import tempfile
 import threading
 import time
@@ -43,7 +45,7 @@ from ..xla import jit
 log = logging.getLogger("sinkjax")
 
 # The first line of every file; a new layout gets a new number (old files are then ignored).
-MAGIC = b"sinkjax-executable 1\n"
+MAGIC = b"sinkjax-executable 2\n"
 COMPILED_MAGIC = b"sinkjax-compiled 1\n"
 # Reported as part of the run's compile time (sinkjax.app.compile_cache.CompileClock).
 LOAD_EVENT = "/sinkjax/exported_load_duration"
@@ -60,27 +62,27 @@ def code_hash() -> str:
 
 
 @functools.cache
-def _environment() -> str:
+def _environment(with_code: bool = True) -> str:
+    # with_code=False: what the compile depends on besides the module (a compiled file's key).
     import equinox
     import jax
     import jaxlib
 
     from .. import __version__
+    from ..xla import compiler_options
 
     device = jax.devices()[0]
-    return repr(
-        (
-            jax.__version__,
-            jaxlib.__version__,
-            equinox.__version__,
-            __version__,
-            code_hash(),
-            device.platform,
-            device.client.platform_version,
-            device.device_kind,
-            jax.device_count(),
-        )
+    common = (
+        jax.__version__,
+        jaxlib.__version__,
+        device.platform,
+        device.client.platform_version,
+        device.device_kind,
+        jax.device_count(),
     )
+    if with_code:
+        return repr((*common, equinox.__version__, __version__, code_hash()))
+    return repr((*common, sorted(compiler_options().items()), os.environ.get("XLA_FLAGS", "")))
 
 
 def cache_key(name: str, args: tuple[Any, ...]) -> str:
@@ -91,6 +93,26 @@ def cache_key(name: str, args: tuple[Any, ...]) -> str:
     shapes = [(tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))) for x in leaves]
     text = repr((_environment(), name, str(tree), shapes, jax.config.read("jax_enable_x64")))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+# MLIR location attributes: loc("name"), loc(#loc12), loc("f.py":3:4 to :9), loc(callsite(...)).
+_LOCATION = re.compile(r"\s*\bloc\((?:[^()]|\((?:[^()]|\([^()]*\))*\))*\)")
+
+
+def module_key(exported: Any) -> str:
+    """A hash of what ``exported`` compiles to: its module without source locations (which
+    name sinkjax's files and lines), its pytrees and this machine's compile settings. An edit
+    of sinkjax that leaves the computation as it was keeps the key (and the compiled file)."""
+    text = "\n".join(
+        line for line in exported.mlir_module().splitlines() if not line.startswith("#loc")
+    )
+    parts = (
+        _environment(with_code=False),
+        _LOCATION.sub("", text),
+        str(exported.in_tree),
+        str(exported.out_tree),
+    )
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
 
 
 def _missing_sentinel() -> Any:
@@ -197,6 +219,7 @@ class Loaded:
     Under tracing (``jax.eval_shape``, an enclosing ``jit``) it is the exported call."""
 
     def __init__(self, cache: ExecutableCache, key: str, exported: Any, args: tuple[Any, ...]):
+        # key: the compiled file's (module_key), shared by every export that compiles alike.
         self._cache, self._key, self._args = cache, key, args
         self.jitted = jit(exported.call)
         self._compiled: Any = None
@@ -237,10 +260,9 @@ class ExecutableCache:
         key = cache_key(name, args)
         ready = self._ready.get(key)
         if ready is None:
-            exported = self._load(key, args)
-            if exported is None:
-                exported = self._export(key, fn, args)
-            ready = self._ready[key] = Loaded(self, key, exported, args)
+            loaded = self._load(key, args)
+            exported, module = loaded if loaded is not None else self._export(key, fn, args)
+            ready = self._ready[key] = Loaded(self, module, exported, args)
         return ready
 
     def path(self, key: str) -> Path:
@@ -316,7 +338,7 @@ class ExecutableCache:
         finally:
             Path(tmp).unlink(missing_ok=True)
 
-    def _load(self, key: str, args: tuple[Any, ...]) -> Any:
+    def _load(self, key: str, args: tuple[Any, ...]) -> tuple[Any, str] | None:
         import jax
 
         path = self.path(key)
@@ -325,7 +347,7 @@ class ExecutableCache:
         start = time.time()
         try:
             body = self._read(path, MAGIC)
-            stored_key, exported = _Unpickler(io.BytesIO(body)).load()
+            stored_key, exported, module = _Unpickler(io.BytesIO(body)).load()
             avals = tuple(jax.typeof(x) for x in jax.tree_util.tree_leaves(args))
             if (
                 stored_key != key
@@ -337,17 +359,19 @@ class ExecutableCache:
             log.info("exported function %s unusable (%s): tracing it again", path, e)
             return None
         jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
-        return exported
+        return exported, module
 
-    def _export(self, key: str, fn: Any, args: tuple[Any, ...]) -> Any:
+    def _export(self, key: str, fn: Any, args: tuple[Any, ...]) -> tuple[Any, str]:
+        """``fn`` exported for ``args`` and its :func:`module_key`, both kept on disk."""
         import jax
 
         exported = jax.export.export(fn)(*args)
+        module = module_key(exported)
         try:
             buffer = io.BytesIO()
             # The VJP hook is a closure (not picklable); the command line never differentiates.
-            _Pickler(buffer).dump((key, dataclasses.replace(exported, _get_vjp=None)))
+            _Pickler(buffer).dump((key, dataclasses.replace(exported, _get_vjp=None), module))
             self._write(self.path(key), MAGIC, buffer.getvalue())
         except Exception as e:  # the run goes on with the exported function
             log.info("exported function not written to %s (%s)", self.directory, e)
-        return exported
+        return exported, module
