@@ -229,11 +229,7 @@ class Loaded:
         """The compiled executable (a ``jax.stages.Compiled``)."""
         with self._lock:
             if self._compiled is None:
-                compiled = self._cache.compiled(self._key, self.jitted, self._args)
-                # Only running it needs the platform ready: its loading overlaps the other
-                # thread's.
-                _backend_ready()
-                self._compiled = compiled
+                self._compiled = self._cache.compiled(self._key, self.jitted, self._args)
             return self._compiled
 
     def __call__(self, *args: Any) -> Any:
@@ -316,6 +312,9 @@ class ExecutableCache:
             path.unlink(missing_ok=True)
             return None
         jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
+        # Only running it needs the platform ready (a compile in this process did that as it
+        # lowered): set up on its own thread while this one deserialised (_get_ready_ahead).
+        _backend_ready()
         return compiled
 
     @staticmethod
