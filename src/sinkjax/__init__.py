@@ -11,6 +11,12 @@ Eqs. 1-3, ``rig`` the rig file, ``status`` and ``result`` what every estimator r
 ``sinkjax.review`` (the web page) are optional extras. The contract is docs/conventions.md.
 """
 
+# First: when this process is the `sinkjax estimate` command, its compiled functions start
+# loading beside the imports below (sinkjax.app.early; nothing happens on a library import).
+from .app.early import begin as _begin
+
+_begin()
+
 from . import metrics as metrics
 from .app.frames import read_image as read_image
 from .app.overlay import draw_overlay as draw_overlay

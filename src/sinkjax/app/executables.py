@@ -8,9 +8,11 @@ shapes, and the call that runs under tracing) and as the compiled executable its
 (``jax.experimental.serialize_executable``). A later process loads both, skipping tracing,
 lowering and the cache-key hash (about 0.1 s a function, all of it holding Python's lock while
 the other half loads). A deserialised executable needs the CPU's LAPACK kernels registered,
-which lowering does as a side effect; :func:`_backend_ready` lowers a trivial exported call
-once per process for that (without it the first call crashed). ``Exported.serialize`` needs the
-optional ``flatbuffers``: the Exported is pickled.
+which lowering does as a side effect; :func:`sinkjax.app.early.backend_ready` lowers a trivial
+exported call once per process for that (without it the first call crashed).
+``Exported.serialize`` needs the optional ``flatbuffers``: the Exported is pickled. The command
+line starts loading the executables while sinkjax is still being imported
+(:mod:`sinkjax.app.early`).
 
 An export's file is named by a hash of everything that could make it wrong for this process:
 the jax, jaxlib and equinox versions, sinkjax's version and the hash of its source files, the
@@ -41,12 +43,16 @@ from pathlib import Path
 from typing import Any
 
 from ..xla import jit
+from . import early
 
 log = logging.getLogger("sinkjax")
 
 # The first line of every file; a new layout gets a new number (old files are then ignored).
 MAGIC = b"sinkjax-executable 2\n"
-COMPILED_MAGIC = b"sinkjax-compiled 1\n"
+# Layout 2: the key and the executable, then its pytrees, as two pickles (the first alone is read
+# while sinkjax is still being imported: sinkjax.app.early). Layout 1 (one pickle) is converted.
+COMPILED_MAGIC = b"sinkjax-compiled 2\n"
+_COMPILED_MAGIC_1 = b"sinkjax-compiled 1\n"
 # Reported as part of the run's compile time (sinkjax.app.compile_cache.CompileClock).
 LOAD_EVENT = "/sinkjax/exported_load_duration"
 
@@ -137,46 +143,6 @@ class _Unpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"unknown reference {pid!r}")
 
 
-_READY_LOCK = threading.Lock()
-_ready_platforms: set[str] = set()
-
-
-def _backend_ready() -> None:
-    """Lower a trivial exported call once per process (two threads asking: the second waits):
-    what ``jax.export`` initialises for a platform before its first call (on a CPU, the LAPACK
-    kernels a deserialised executable calls, about 0.1 s) is then ready."""
-    import jax
-    import numpy as np
-
-    with _READY_LOCK:
-        if jax.default_backend() in _ready_platforms:
-            return
-        exported = jax.export.export(jax.jit(_identity))(np.float32(0))
-        jax.jit(exported.call).lower(np.float32(0))
-        _ready_platforms.add(jax.default_backend())
-
-
-@functools.cache
-def _get_ready_ahead() -> None:
-    # While this thread deserialises (which holds no Python lock), another gets the platform
-    # ready; the first call waits for it (_backend_ready's lock).
-    threading.Thread(target=_backend_ready, name="sinkjax-ready", daemon=True).start()
-
-
-def _forget_ready() -> None:
-    # A forked child has none of its parent's threads: a lock held by one would never open.
-    global _READY_LOCK
-    _READY_LOCK = threading.Lock()
-    _get_ready_ahead.cache_clear()
-
-
-os.register_at_fork(after_in_child=_forget_ready)
-
-
-def _identity(x: Any) -> Any:
-    return x
-
-
 # JAX records this event when it has compiled a function afresh and writes it to its persistent
 # cache. An executable JAX loaded from that cache does not serialise whole (with this jaxlib it
 # lost kernels: "Function ... not found" at its first call), so only a fresh compile is kept.
@@ -235,6 +201,7 @@ class Loaded:
     def __call__(self, *args: Any) -> Any:
         if _has_tracer(args):
             return self.jitted(*args)
+        early.note(self._cache.directory, self._key)  # the order the next run loads them in
         return self.load()(*args)
 
 
@@ -265,7 +232,7 @@ class ExecutableCache:
         return self.directory / f"{key}.bin"
 
     def compiled_path(self, key: str) -> Path:
-        return self.directory / f"{key}.exe"
+        return compiled_file(self.directory, key)
 
     def compiled(self, key: str, jitted: Any, args: tuple[Any, ...]) -> Any:
         """The executable of ``jitted`` on ``args``: loaded from :meth:`compiled_path`, else
@@ -280,32 +247,47 @@ class ExecutableCache:
         try:
             from jax.experimental import serialize_executable
 
-            blob, in_tree, out_tree = serialize_executable.serialize(compiled)
-            buffer = io.BytesIO()
-            _Pickler(buffer).dump((key, blob, in_tree, out_tree))
-            self._write(self.compiled_path(key), COMPILED_MAGIC, buffer.getvalue())
+            self._write_compiled(key, *serialize_executable.serialize(compiled))
         except Exception as e:  # the run goes on with the executable compiled here
             log.info("compiled function not written to %s (%s)", self.directory, e)
         return compiled
+
+    def _write_compiled(self, key: str, blob: bytes, in_tree: Any, out_tree: Any) -> None:
+        buffer = io.BytesIO()
+        _Pickler(buffer).dump((key, blob))
+        _Pickler(buffer).dump((in_tree, out_tree))
+        self._write(self.compiled_path(key), COMPILED_MAGIC, buffer.getvalue())
 
     def _load_compiled(self, key: str) -> Any:
         import jax
         from jax.experimental import serialize_executable
 
         path = self.compiled_path(key)
+        start = time.time()
+        compiled = self._loaded_ahead(key)
+        if compiled is not None:
+            jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
+            early.backend_ready()
+            return compiled
         if not path.exists():
             return None
-        _get_ready_ahead()
-        start = time.time()
+        early.get_ready_ahead()
         try:
-            body = self._read(path, COMPILED_MAGIC)
-            stored_key, blob, in_tree, out_tree = _Unpickler(io.BytesIO(body)).load()
+            old = path.read_bytes().startswith(_COMPILED_MAGIC_1)
+            stream = io.BytesIO(read_checked(path, _COMPILED_MAGIC_1 if old else COMPILED_MAGIC))
+            if old:
+                stored_key, blob, in_tree, out_tree = _Unpickler(stream).load()
+            else:
+                stored_key, blob = _Unpickler(stream).load()
+                in_tree, out_tree = _Unpickler(stream).load()
             if stored_key != key:
                 raise ValueError("written for other arguments")
             device = jax.devices()[0]
             compiled = serialize_executable.deserialize_and_load(
                 blob, in_tree, out_tree, backend=device.client, execution_devices=[device]
             )
+            if old:  # the same executable in the current layout
+                self._write_compiled(key, blob, in_tree, out_tree)
         except Exception as e:  # any failure: compile afresh instead
             log.info("compiled function %s unusable (%s): compiling it again", path, e)
             # Removed: a compile that JAX loads from its own cache does not rewrite it.
@@ -313,17 +295,22 @@ class ExecutableCache:
             return None
         jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
         # Only running it needs the platform ready (a compile in this process did that as it
-        # lowered): set up on its own thread while this one deserialised (_get_ready_ahead).
-        _backend_ready()
+        # lowered): set up on its own thread while this one deserialised (early.get_ready_ahead).
+        early.backend_ready()
         return compiled
 
     @staticmethod
-    def _read(path: Path, magic: bytes) -> bytes:
-        data = path.read_bytes()
-        head, _, body = data[len(magic) :].partition(b"\n")
-        if not data.startswith(magic) or head.decode() != hashlib.sha256(body).hexdigest():
-            raise ValueError("bad header or checksum")
-        return body
+    def _loaded_ahead(key: str) -> Any:
+        """The executable :mod:`sinkjax.app.early` loaded for ``key`` while sinkjax was being
+        imported, or None (none, or it cannot be assembled: the file is read again)."""
+        parts = early.take(key)
+        if parts is None:
+            return None
+        try:
+            return parts.compiled()
+        except Exception as e:
+            log.info("compiled function %s loaded ahead unusable (%s)", key, e)
+            return None
 
     def _write(self, target: Path, magic: bytes, body: bytes) -> None:
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -345,7 +332,7 @@ class ExecutableCache:
             return None
         start = time.time()
         try:
-            body = self._read(path, MAGIC)
+            body = read_checked(path, MAGIC)
             stored_key, exported, module = _Unpickler(io.BytesIO(body)).load()
             avals = tuple(jax.typeof(x) for x in jax.tree_util.tree_leaves(args))
             if (
@@ -374,3 +361,18 @@ class ExecutableCache:
         except Exception as e:  # the run goes on with the exported function
             log.info("exported function not written to %s (%s)", self.directory, e)
         return exported, module
+
+
+def compiled_file(directory: Path, key: str) -> Path:
+    """Where :class:`ExecutableCache` keeps the compiled executable of module ``key``."""
+    return directory / f"{key}.exe"
+
+
+def read_checked(path: Path, magic: bytes) -> bytes:
+    """The body of a file written by :class:`ExecutableCache` with first line ``magic``; a
+    ValueError if that line or the body's checksum is wrong."""
+    data = path.read_bytes()
+    head, _, body = data[len(magic) :].partition(b"\n")
+    if not data.startswith(magic) or head.decode() != hashlib.sha256(body).hexdigest():
+        raise ValueError("bad header or checksum")
+    return body

@@ -1,0 +1,257 @@
+"""The command line's start: the soft method's compiled halves load while Python imports sinkjax.
+
+A warm ``sinkjax estimate`` spends about 1.6 s importing (jax about 1 s of it, then equinox,
+optimistix, OpenCV and sinkjax itself on one core) and then about 1.4 s deserialising the soft
+method's compiled halves (:mod:`sinkjax.app.executables`), which holds no Python lock. So when
+this process is that command (:func:`begin`, called first thing by ``sinkjax/__init__.py``:
+``sinkjax estimate`` with the soft method, in this process, with its cache on), the executables
+that the last such run asked for first (their names in :data:`HINT` beside them, written by
+:func:`note`, in the order the run first called them) are deserialised on two threads of their
+own from the moment jax is imported, beside the rest of the import.
+:class:`~sinkjax.app.executables.ExecutableCache` then takes them (:func:`take`) instead of
+reading them again. The names are the compiled files' own keys
+(:func:`~sinkjax.app.executables.module_key`): an executable is used only where the run asks
+for exactly it, so a hint from another image size costs those threads' time and nothing else.
+``experiments/campaign.py`` measures the start-up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import io
+import os
+import sys
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+HINT = "first.txt"  # in the executables folder: the compiled files a run asked for first
+HINT_SIZE = 3  # prepare, finish and rechoose of the first image size
+# The two halves side by side, beside the import: on 2 cores 3.4 s for 8 frames against 3.6 s
+# one after the other (the import is slower, but no half is waited for).
+THREADS = 2
+
+# key -> its deserialised parts (Parts), loading or loaded ahead; taken once.
+_ahead: dict[str, Future[Any]] = {}
+_asked: list[str] = []  # this process's first compiled files, in the order asked for
+_lock = threading.Lock()
+
+
+def command_args(orig_argv: Sequence[str], argv: Sequence[str]) -> list[str] | None:
+    """The arguments after ``sinkjax`` when this process is the command line (the ``sinkjax``
+    script, or ``python -m sinkjax.app.cli``), else None."""
+    i = 1
+    while i < len(orig_argv):
+        arg = orig_argv[i]
+        if arg == "-m":
+            module = orig_argv[i + 1] if i + 1 < len(orig_argv) else ""
+            return list(orig_argv[i + 2 :]) if module == "sinkjax.app.cli" else None
+        if arg == "-c" or not arg.startswith("-"):
+            break  # a command string, or the script: its name decides below
+        i += 2 if arg in ("-X", "-W") else 1  # the interpreter's options with a value
+    if argv and Path(argv[0]).name == "sinkjax":
+        return list(argv[1:])
+    return None
+
+
+def loads_soft(args: Sequence[str]) -> bool:
+    """Whether ``sinkjax ARGS`` measures with the soft method in this process, with the compile
+    cache on: ``estimate`` without ``--method classic``, a learned ``--segmenter`` (compiled
+    through jit, not kept), ``--workers``/``--scheduler`` (the workers load) or
+    ``--no-compile-cache``. Abbreviated options are read as argparse reads them; when in
+    doubt, no."""
+    if not args or args[0] != "estimate":
+        return False
+    stoppers = ("--segmenter", "--workers", "--scheduler", "--no-compile-cache")
+    for i, arg in enumerate(args[1:], start=1):
+        name, eq, value = arg.partition("=")
+        if len(name) < 3 or not name.startswith("--"):
+            continue
+        if any(flag.startswith(name) for flag in stoppers):
+            return False
+        if "--method".startswith(name):
+            value = value if eq else (args[i + 1] if i + 1 < len(args) else "")
+            if value != "soft":
+                return False
+    return True
+
+
+def begin() -> None:
+    """When this process is ``sinkjax estimate`` measuring with the soft method (see
+    :func:`loads_soft`), import jax and start loading the compiled files named in the cache's
+    hint on threads of their own. Anything amiss (no hint, no file, an unreadable one): no
+    thread, and the run loads its functions as it would have."""
+    args = command_args(getattr(sys, "orig_argv", sys.argv), sys.argv)
+    if args is None or not loads_soft(args):
+        return
+    from .compile_cache import cache_dir
+
+    directory = cache_dir()
+    if directory is None:
+        return
+    folder = directory / "executables"
+    keys = read_hint(folder)
+    if not keys:
+        return
+    # jax here, not on the thread: the two threads never import one module at once.
+    from jax.experimental import serialize_executable  # noqa: F401
+
+    from .executables import compiled_file
+
+    start(keys, lambda key: read_parts(compiled_file(folder, key), key))
+    get_ready_ahead()  # the platform's set-up, which a loaded executable needs to run
+
+
+def start(keys: Sequence[str], load: Callable[[str], Any]) -> None:
+    """Load each key with ``load`` (its parts, or None) on :data:`THREADS` threads of their own,
+    started in the order given; :func:`take` hands them out."""
+    pool = ThreadPoolExecutor(THREADS, thread_name_prefix="sinkjax-early")
+    with _lock:
+        for key in keys:
+            if key not in _ahead:
+                _ahead[key] = pool.submit(load, key)
+    pool.shutdown(wait=False)  # the thread ends when the queue is done
+
+
+@dataclasses.dataclass(frozen=True)
+class Parts:
+    """A compiled file deserialised up to its pytrees (which name sinkjax's classes, so they
+    are read once sinkjax is imported): what ``serialize_executable.deserialize_and_load``
+    makes of the executable, and the pickled ``(in_tree, out_tree)``."""
+
+    executable: Any  # the loaded executable
+    args_info: list[Any]  # flat
+    no_kwargs: bool
+    trees: bytes
+
+    def compiled(self) -> Any:
+        """The ``jax.stages.Compiled``, as ``deserialize_and_load`` assembles it."""
+        import jax
+
+        from .executables import _Unpickler
+
+        in_tree, out_tree = _Unpickler(io.BytesIO(self.trees)).load()
+        args_info = in_tree.unflatten(self.args_info)
+        return jax.stages.Compiled(
+            self.executable, [], args_info, out_tree, no_kwargs=self.no_kwargs
+        )
+
+
+def read_parts(path: Path, key: str) -> Parts | None:
+    """``path`` (a compiled file of the current layout, for ``key``) deserialised into
+    :class:`Parts`, or None if it is not there or not of that layout. Errors propagate."""
+    import jax
+    from jax.experimental import serialize_executable
+
+    from .executables import COMPILED_MAGIC, _Unpickler, read_checked
+
+    if not path.exists():
+        return None
+    stream = io.BytesIO(read_checked(path, COMPILED_MAGIC))
+    stored, blob = _Unpickler(stream).load()
+    if stored != key:
+        raise ValueError("written for other arguments")
+    device = jax.devices()[0]
+    unpickler = serialize_executable._JaxPjrtUnpickler(io.BytesIO(blob), device.client, [device])
+    unloaded, args_info, no_kwargs = unpickler.load()
+    return Parts(unloaded.load(), args_info, no_kwargs, stream.read())
+
+
+def take(key: str) -> Parts | None:
+    """The parts loaded ahead for ``key`` (waiting while they load), or None: none asked for, a
+    load that failed, or one not started yet (cancelled: the caller loads it itself, beside
+    the thread rather than after it)."""
+    with _lock:
+        future = _ahead.pop(key, None)
+    if future is None or future.cancel():
+        return None
+    try:
+        return future.result()
+    except Exception:  # the caller loads it, and says what is wrong with the file
+        return None
+
+
+def note(folder: Path, key: str) -> None:
+    """Record that this process asked for compiled file ``key`` in ``folder``: its first
+    :data:`HINT_SIZE` keys become the hint the next run loads ahead (written when they differ
+    from the hint there; a file that cannot be written is no error)."""
+    with _lock:
+        if key in _asked or len(_asked) >= HINT_SIZE:
+            return
+        _asked.append(key)
+        keys = list(_asked)
+    old = read_hint(folder)
+    if old[: len(keys)] == keys:
+        return
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / f"{HINT}.{os.getpid()}.{threading.get_ident()}.tmp"
+        tmp.write_text("".join(f"{k}\n" for k in keys), encoding="ascii")
+        os.replace(tmp, folder / HINT)
+    except OSError:
+        pass
+
+
+def read_hint(folder: Path) -> list[str]:
+    """The keys in ``folder``'s hint (hex names only), or [] where there is none."""
+    try:
+        text = (folder / HINT).read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError):
+        return []
+    keys = [line.strip() for line in io.StringIO(text)]
+    hexdigits = set("0123456789abcdef")
+    return [k for k in keys if len(k) == 64 and set(k) <= hexdigits][:HINT_SIZE]
+
+
+# ----------------------------------------------------------------------------- the platform
+
+
+_READY_LOCK = threading.Lock()
+_ready_platforms: set[str] = set()
+
+
+def backend_ready() -> None:
+    """Lower a trivial exported call once per process (two threads asking: the second waits):
+    what ``jax.export`` initialises for a platform before its first call (on a CPU, the LAPACK
+    kernels a deserialised executable calls, about 0.1 s) is then ready."""
+    import jax
+    import numpy as np
+
+    with _READY_LOCK:
+        if jax.default_backend() in _ready_platforms:
+            return
+        exported = jax.export.export(jax.jit(_identity))(np.float32(0))
+        jax.jit(exported.call).lower(np.float32(0))
+        _ready_platforms.add(jax.default_backend())
+
+
+@functools.cache
+def get_ready_ahead() -> None:
+    # While this thread deserialises (which holds no Python lock), another gets the platform
+    # ready; the first call waits for it (backend_ready's lock).
+    threading.Thread(target=backend_ready, name="sinkjax-ready", daemon=True).start()
+
+
+def _forget_ready() -> None:
+    # A forked child has none of its parent's threads: a lock held by one would never open.
+    global _READY_LOCK
+    _READY_LOCK = threading.Lock()
+    get_ready_ahead.cache_clear()
+
+
+os.register_at_fork(after_in_child=_forget_ready)
+
+
+def _identity(x: Any) -> Any:
+    return x
+
+
+def _forget() -> None:
+    # A forked child has none of its parent's threads: what they were loading never arrives.
+    _ahead.clear()
+
+
+os.register_at_fork(after_in_child=_forget)
