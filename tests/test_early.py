@@ -65,23 +65,61 @@ def test_only_a_soft_estimate_with_its_cache_loads_ahead(args, expected) -> None
     assert early.loads_soft(args) is expected
 
 
-def test_hint_keeps_the_first_keys_in_order_and_reads_only_names(tmp_path, monkeypatch) -> None:
-    monkeypatch.setattr(early, "_asked", [])
-    for key in (KEYS[0], KEYS[1], KEYS[0], KEYS[2], KEYS[3]):
-        early.note(tmp_path, key)
-    assert early.read_hint(tmp_path) == KEYS[:3]
-    # A process asking for what the hint begins with leaves it as it is ...
-    monkeypatch.setattr(early, "_asked", [])
-    early.note(tmp_path, KEYS[0])
-    assert early.read_hint(tmp_path) == KEYS[:3]
-    # ... one that starts otherwise rewrites it.
-    early.note(tmp_path, KEYS[4])
-    assert early.read_hint(tmp_path) == [KEYS[0], KEYS[4]]
-    (tmp_path / early.HINT).write_text(f"../etc/passwd\n{KEYS[1].upper()}\n{KEYS[2]}\n\n")
-    assert early.read_hint(tmp_path) == [KEYS[2]]
+def test_hint_keeps_each_sizes_first_keys_this_runs_sizes_first(tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr(early, "_asked", {})
+    monkeypatch.setattr(early, "_size", [])
+    a, b = (640, 480), (800, 600)
+    early.note(tmp_path, KEYS[4], None)  # no size noted yet: nothing to file it under
+    for key, size in ((KEYS[0], a), (KEYS[1], a), (KEYS[0], a), (KEYS[2], None), (KEYS[3], a)):
+        early.note(tmp_path, key, size)
+    assert early.read_hints(tmp_path) == {a: KEYS[:3]}
+    # The next process: another size first; the hint keeps the old size after it ...
+    monkeypatch.setattr(early, "_asked", {})
+    early.note(tmp_path, KEYS[4], b)
+    assert list(early.read_hints(tmp_path).items()) == [(b, [KEYS[4]]), (a, KEYS[:3])]
+    # ... and a process whose keys the hint goes on from leaves the rest of them.
+    monkeypatch.setattr(early, "_asked", {})
+    early.note(tmp_path, KEYS[0], a)
+    assert list(early.read_hints(tmp_path).items()) == [(a, KEYS[:3]), (b, [KEYS[4]])]
+    (tmp_path / early.HINT).write_text(
+        f"640x480 ../etc/passwd {KEYS[1].upper()} {KEYS[2]}\nAxB {KEYS[0]}\n800x600\n\n"
+    )
+    assert early.read_hints(tmp_path) == {a: [KEYS[2]]}
     (tmp_path / early.HINT).write_bytes(b"\xff\xfe")
-    assert early.read_hint(tmp_path) == []
-    assert early.read_hint(tmp_path / "missing") == []
+    assert early.read_hints(tmp_path) == {}
+    assert early.read_hints(tmp_path / "missing") == {}
+
+
+def test_first_size_reads_the_first_paths_header(tmp_path) -> None:
+    import cv2
+    import numpy as np
+
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "b.png"), np.zeros((30, 40, 3), np.uint8))
+    cv2.imwrite(str(folder / "a.jpg"), np.zeros((20, 50, 3), np.uint8))
+    (folder / ".hidden.png").write_bytes(b"")
+    (folder / "rig.toml").write_text("")
+    rig = str(folder / "rig.toml")
+    assert early.first_size([str(folder)]) == (50, 20)
+    assert early.first_size(["--rig", rig, "--resume", str(folder / "b.png"), "x"]) == (40, 30)
+    assert early.first_size(["--out=r.csv", str(folder)]) == (50, 20)
+    assert early.first_size([str(tmp_path / "run.mp4")]) is None
+    assert early.first_size([str(tmp_path / "missing.png")]) is None
+    assert early.first_size(["--rig", rig]) is None
+
+
+def test_no_value_options_are_the_command_lines() -> None:
+    import argparse
+
+    from sinkjax.app.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    estimate = sub.choices["estimate"]
+    flags = {o for a in estimate._actions if a.nargs == 0 for o in a.option_strings}
+    assert flags == set(early.NO_VALUE)
+    assert all(a.nargs is None for a in estimate._actions if a.option_strings and a.nargs != 0)
 
 
 def test_take_waits_for_a_load_under_way_and_leaves_unstarted_ones(monkeypatch) -> None:
@@ -149,7 +187,7 @@ def test_the_second_run_takes_the_executables_loaded_ahead_with_identical_rows(t
     cache = tmp_path / "cache"
     cold = _cli(folder, tmp_path / "cold.csv", cache)
     assert cold == {"code": 0, "taken": []}
-    hint = early.read_hint(cache / "executables")
+    hint = early.read_hints(cache / "executables")[(200, 150)]
     kept = sorted(p.stem for p in (cache / "executables").glob("*.exe"))
     # prepare, finish, rechoose in the order first called. What compiled afresh is kept:
     # prepare and finish on an idle machine (rechoose compiles in under JAX's threshold; which
@@ -157,7 +195,14 @@ def test_the_second_run_takes_the_executables_loaded_ahead_with_identical_rows(t
     assert len(hint) == 3 and kept and set(kept) <= set(hint)
     warm = _cli(folder, tmp_path / "warm.csv", cache)
     assert warm["code"] == 0 and sorted(warm["taken"]) == kept
-    # A compiled file of the first layout is not loaded ahead, but loaded and rewritten.
+    # A run on another image size puts its own keys first in the hint ...
+    other = tmp_path / "other"
+    S.write_recording(other, n_frames=2, seed=8, width=240, height=180, progress=False)
+    assert _cli(other, tmp_path / "other.csv", cache) == {"code": 0, "taken": []}
+    assert list(early.read_hints(cache / "executables")) == [(240, 180), (200, 150)]
+    # ... and the next run on the first size finds that size's (from its first image's
+    # header). A compiled file of the first layout is not loaded ahead, but loaded and
+    # rewritten.
     first = cache / "executables" / f"{kept[0]}.exe"
     _to_layout_1(first)
     again = _cli(folder, tmp_path / "again.csv", cache)

@@ -29,14 +29,19 @@ from pathlib import Path
 from typing import Any
 
 HINT = "first.txt"  # in the executables folder: the compiled files a run asked for first
-HINT_SIZE = 3  # prepare, finish and rechoose of the first image size
+HINT_SIZE = 3  # per image size: prepare, finish and rechoose
+HINT_SIZES = 8  # image sizes in the hint, the last run's first
+# The command line's options that take no value (tests/test_early.py checks them against it).
+NO_VALUE = ("--help", "-h", "--resume", "--smooth", "--no-compile-cache")
 # The two halves side by side, beside the import: on 2 cores 3.4 s for 8 frames against 3.6 s
 # one after the other (the import is slower, but no half is waited for).
 THREADS = 2
 
 # key -> its deserialised parts (Parts), loading or loaded ahead; taken once.
 _ahead: dict[str, Future[Any]] = {}
-_asked: list[str] = []  # this process's first compiled files, in the order asked for
+# This process's first compiled files per image size (width, height), in the order asked for.
+_asked: dict[tuple[int, int], list[str]] = {}
+_size: list[tuple[int, int]] = []  # the image size last asked for (a key without one: that)
 _lock = threading.Lock()
 
 
@@ -82,8 +87,8 @@ def loads_soft(args: Sequence[str]) -> bool:
 def begin() -> None:
     """When this process is ``sinkjax estimate`` measuring with the soft method (see
     :func:`loads_soft`), import jax and start loading the compiled files named in the cache's
-    hint on threads of their own. Anything amiss (no hint, no file, an unreadable one): no
-    thread, and the run loads its functions as it would have."""
+    hint on threads of their own. Anything amiss (no hint, a file missing or unreadable): the
+    run loads that function as it would have."""
     args = command_args(getattr(sys, "orig_argv", sys.argv), sys.argv)
     if args is None or not loads_soft(args):
         return
@@ -93,7 +98,12 @@ def begin() -> None:
     if directory is None:
         return
     folder = directory / "executables"
-    keys = read_hint(folder)
+    hints = read_hints(folder)
+    size = first_size(args[1:])
+    if size is None:  # not known from a header (a video): the last run's first size
+        keys = next(iter(hints.values()), [])
+    else:
+        keys = hints.get(size, [])
     if not keys:
         return
     # jax here, not on the thread: the two threads never import one module at once.
@@ -174,36 +184,84 @@ def take(key: str) -> Parts | None:
         return None
 
 
-def note(folder: Path, key: str) -> None:
-    """Record that this process asked for compiled file ``key`` in ``folder``: its first
-    :data:`HINT_SIZE` keys become the hint the next run loads ahead (written when they differ
-    from the hint there; a file that cannot be written is no error)."""
+def note(folder: Path, key: str, size: tuple[int, int] | None) -> None:
+    """Record that this process called compiled file ``key`` in ``folder``, for frames of
+    ``size`` (width, height; None: the size last noted). Each size's first :data:`HINT_SIZE`
+    keys become the hint the next run loads ahead, this run's sizes first (written when it
+    changes; a file that cannot be written is no error)."""
     with _lock:
-        if key in _asked or len(_asked) >= HINT_SIZE:
+        if size is None:
+            if not _size:
+                return
+            size = _size[0]
+        _size[:] = [size]
+        keys = _asked.setdefault(size, [])
+        if key in keys or len(keys) >= HINT_SIZE:
             return
-        _asked.append(key)
-        keys = list(_asked)
-    old = read_hint(folder)
-    if old[: len(keys)] == keys:
+        keys.append(key)
+        mine = {s: list(k) for s, k in _asked.items()}
+    old = read_hints(folder)
+    for s, k in mine.items():  # a hint that goes on from this run's keys keeps the rest
+        if old.get(s, [])[: len(k)] == k:
+            mine[s] = old[s]
+    merged = list({**mine, **{s: k for s, k in old.items() if s not in mine}}.items())
+    if merged[:HINT_SIZES] == list(old.items()):
         return
+    text = "".join(f"{w}x{h} {' '.join(k)}\n" for (w, h), k in merged[:HINT_SIZES])
     try:
         folder.mkdir(parents=True, exist_ok=True)
         tmp = folder / f"{HINT}.{os.getpid()}.{threading.get_ident()}.tmp"
-        tmp.write_text("".join(f"{k}\n" for k in keys), encoding="ascii")
+        tmp.write_text(text, encoding="ascii")
         os.replace(tmp, folder / HINT)
     except OSError:
         pass
 
 
-def read_hint(folder: Path) -> list[str]:
-    """The keys in ``folder``'s hint (hex names only), or [] where there is none."""
+def read_hints(folder: Path) -> dict[tuple[int, int], list[str]]:
+    """The keys in ``folder``'s hint per image size (width, height), the last run's first size
+    first; hex names only; {} where there is none."""
     try:
         text = (folder / HINT).read_text(encoding="ascii")
     except (OSError, UnicodeDecodeError):
-        return []
-    keys = [line.strip() for line in io.StringIO(text)]
+        return {}
     hexdigits = set("0123456789abcdef")
-    return [k for k in keys if len(k) == 64 and set(k) <= hexdigits][:HINT_SIZE]
+    hints: dict[tuple[int, int], list[str]] = {}
+    for line in io.StringIO(text):
+        size, *keys = line.split() or [""]
+        w, x, h = size.partition("x")
+        if not (x and w.isdigit() and h.isdigit()):
+            continue
+        keys = [k for k in keys if len(k) == 64 and set(k) <= hexdigits][:HINT_SIZE]
+        if keys:
+            hints.setdefault((int(w), int(h)), keys)
+    return hints
+
+
+def first_size(args: Sequence[str]) -> tuple[int, int] | None:
+    """(width, height) of the first PATH among ``sinkjax estimate``'s arguments: an image's,
+    or a directory's first image's, from its header; None for a video or anything unread."""
+    from .image_file import IMAGE_EXTENSIONS, header_size
+
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if arg.startswith("-") and arg != "-":
+            i += 1 if "=" in arg or arg in NO_VALUE else 2
+            continue
+        path = Path(arg)
+        if path.is_dir():
+            try:
+                names = sorted(os.listdir(path))
+            except OSError:
+                return None
+            images = [n for n in names if not n.startswith(".") and _is_image(n, IMAGE_EXTENSIONS)]
+            return header_size(path / images[0]) if images else None
+        return header_size(path) if _is_image(arg, IMAGE_EXTENSIONS) else None
+    return None
+
+
+def _is_image(name: str, extensions: Sequence[str]) -> bool:
+    return os.path.splitext(name)[1].lower() in extensions
 
 
 # ----------------------------------------------------------------------------- the platform

@@ -28,6 +28,7 @@ compiled afresh is kept (:data:`FRESH_EVENT`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -187,6 +188,9 @@ class Loaded:
     def __init__(self, cache: ExecutableCache, key: str, exported: Any, args: tuple[Any, ...]):
         # key: the compiled file's (module_key), shared by every export that compiles alike.
         self._cache, self._key, self._args = cache, key, args
+        shape: tuple[int, ...] = tuple(getattr(args[0], "shape", ())) if args else ()
+        # The frames' (width, height) where the first argument is a frame, for the hint.
+        self._size = (int(shape[1]), int(shape[0])) if len(shape) == 3 and shape[2] == 3 else None
         self.jitted = jit(exported.call)
         self._compiled: Any = None
         self._lock = threading.Lock()
@@ -201,7 +205,7 @@ class Loaded:
     def __call__(self, *args: Any) -> Any:
         if _has_tracer(args):
             return self.jitted(*args)
-        early.note(self._cache.directory, self._key)  # the order the next run loads them in
+        early.note(self._cache.directory, self._key, self._size)  # what the next run loads
         return self.load()(*args)
 
 
@@ -273,7 +277,8 @@ class ExecutableCache:
             return None
         early.get_ready_ahead()
         try:
-            old = path.read_bytes().startswith(_COMPILED_MAGIC_1)
+            with path.open("rb") as f:
+                old = f.read(len(_COMPILED_MAGIC_1)) == _COMPILED_MAGIC_1
             stream = io.BytesIO(read_checked(path, _COMPILED_MAGIC_1 if old else COMPILED_MAGIC))
             if old:
                 stored_key, blob, in_tree, out_tree = _Unpickler(stream).load()
@@ -286,13 +291,17 @@ class ExecutableCache:
             compiled = serialize_executable.deserialize_and_load(
                 blob, in_tree, out_tree, backend=device.client, execution_devices=[device]
             )
-            if old:  # the same executable in the current layout
-                self._write_compiled(key, blob, in_tree, out_tree)
         except Exception as e:  # any failure: compile afresh instead
             log.info("compiled function %s unusable (%s): compiling it again", path, e)
             # Removed: a compile that JAX loads from its own cache does not rewrite it.
-            path.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # a folder not writable: left as it is
+                path.unlink(missing_ok=True)
             return None
+        if old:  # the same executable in the current layout (a folder not writable: kept as is)
+            try:
+                self._write_compiled(key, blob, in_tree, out_tree)
+            except OSError as e:
+                log.info("compiled function %s not rewritten (%s)", path, e)
         jax.monitoring.record_event_time_span(LOAD_EVENT, start, time.time())
         # Only running it needs the platform ready (a compile in this process did that as it
         # lowered): set up on its own thread while this one deserialised (early.get_ready_ahead).

@@ -25,6 +25,8 @@ log = logging.getLogger("sinkjax")
 
 # A file larger than this is refused unread (1 GiB: far above any camera frame, well below the
 # memory of a machine that runs sinkjax).
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 MAX_FILE_BYTES = 1 << 30
 # A picture with more pixels than this is refused from its header, undecoded (Pillow's
 # MAX_IMAGE_PIXELS: about 0.27 GB as RGB; a 12000 x 12000 px claim is refused).
@@ -129,6 +131,18 @@ def image_size(f: BinaryIO, fmt: str, head: bytes) -> tuple[int, int] | None:
     if fmt == "TIFF":
         return _tiff_size(f, head)
     return _jpeg_size(f)
+
+
+def header_size(path: str | Path) -> tuple[int, int] | None:
+    """(width, height) px of the image file at ``path`` from its header alone; None if it cannot
+    be read or is not a PNG, JPEG, BMP or TIFF with a size in its header."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(_HEAD_BYTES)
+            fmt = format_of(head)
+            return None if fmt is None else image_size(f, fmt, head)
+    except (OSError, struct.error):
+        return None
 
 
 def check_header(f: BinaryIO) -> tuple[str, int]:

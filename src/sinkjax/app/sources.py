@@ -18,11 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from ..rig import Rig, RigError, read_rig_toml, rig_from_dict
+from .image_file import IMAGE_EXTENSIONS as IMAGE_EXTENSIONS, VIDEO_EXTENSIONS as VIDEO_EXTENSIONS
 
 log = logging.getLogger("sinkjax")
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 RIG_FILENAME = "rig.toml"
 
 
