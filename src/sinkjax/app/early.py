@@ -5,13 +5,14 @@ optimistix, OpenCV and sinkjax itself on one core) and then about 1.4 s deserial
 method's compiled halves (:mod:`sinkjax.app.executables`), which holds no Python lock. So when
 this process is that command (:func:`begin`, called first thing by ``sinkjax/__init__.py``:
 ``sinkjax estimate`` with the soft method, in this process, with its cache on), the executables
-that the last such run asked for first (their names in :data:`HINT` beside them, written by
-:func:`note`, in the order the run first called them) are deserialised on two threads of their
-own from the moment jax is imported, beside the rest of the import.
+that earlier runs called first for the image size of its first PATH (read from the image's
+header; for a video, the last run's first size) are deserialised on two threads of their own
+from the moment jax is imported, beside the rest of the import. Their names are kept per image
+size in :data:`HINT` beside them, in the order a run first called them (:func:`note`).
 :class:`~sinkjax.app.executables.ExecutableCache` then takes them (:func:`take`) instead of
 reading them again. The names are the compiled files' own keys
 (:func:`~sinkjax.app.executables.module_key`): an executable is used only where the run asks
-for exactly it, so a hint from another image size costs those threads' time and nothing else.
+for exactly it, so a wrong guess costs those threads' time and nothing else.
 ``experiments/campaign.py`` measures the start-up.
 """
 
@@ -28,7 +29,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-HINT = "first.txt"  # in the executables folder: the compiled files a run asked for first
+HINT = "first.txt"  # in the executables folder: per image size, the compiled files called first
 HINT_SIZE = 3  # per image size: prepare, finish and rechoose
 HINT_SIZES = 8  # image sizes in the hint, the last run's first
 # The command line's options that take no value (tests/test_early.py checks them against it).
@@ -86,9 +87,9 @@ def loads_soft(args: Sequence[str]) -> bool:
 
 def begin() -> None:
     """When this process is ``sinkjax estimate`` measuring with the soft method (see
-    :func:`loads_soft`), import jax and start loading the compiled files named in the cache's
-    hint on threads of their own. Anything amiss (no hint, a file missing or unreadable): the
-    run loads that function as it would have."""
+    :func:`loads_soft`), import jax and start loading the compiled files the cache's hint
+    names for its first PATH's image size on threads of their own. Anything amiss (no hint, a
+    file missing or unreadable): the run loads that function as it would have."""
     args = command_args(getattr(sys, "orig_argv", sys.argv), sys.argv)
     if args is None or not loads_soft(args):
         return
@@ -99,6 +100,8 @@ def begin() -> None:
         return
     folder = directory / "executables"
     hints = read_hints(folder)
+    if not hints:
+        return
     size = first_size(args[1:])
     if size is None:  # not known from a header (a video): the last run's first size
         keys = next(iter(hints.values()), [])
