@@ -155,7 +155,8 @@ class Parts:
 
 def read_parts(path: Path, key: str) -> Parts | None:
     """``path`` (a compiled file of the current layout, for ``key``) deserialised into
-    :class:`Parts`, or None if it is not there or not of that layout. Errors propagate."""
+    :class:`Parts`, or None if it is not there; a ValueError if it is of another layout, corrupt
+    or for another key (other errors propagate too)."""
     import jax
     from jax.experimental import serialize_executable
 
