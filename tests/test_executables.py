@@ -141,25 +141,34 @@ def test_compiled_files_load_with_identical_numbers_and_only_fresh_compiles_are_
     reference = _run("off")["numbers"]
     cache = tmp_path / "cache"
     cold = _run(cache)
-    exes = sorted((cache / "executables").glob("*.exe"))
-    # prepare and finish take seconds to compile: kept; rechoose is under JAX's threshold.
-    assert len(exes) == 2
+    # prepare, finish and rechoose, each compiled afresh: kept (also rechoose, which compiles
+    # in under JAX's threshold, so that JAX's cache does not have it).
+    exes = sorted((cache / "executables").glob("*.exe"), key=lambda p: p.stat().st_size)
+    assert len(exes) == 3
     warm = _run(cache)
-    assert warm["loaded"].count(True) == 2
-    # A corrupt file is removed and compiled again (from JAX's cache): the same numbers.
-    exes[0].write_bytes(exes[0].read_bytes()[:1000])
+    assert warm["loaded"].count(True) == 3
+    # A corrupt file is removed and compiled again (finish, the largest: from JAX's cache), with
+    # the same numbers.
+    exes[-1].write_bytes(exes[-1].read_bytes()[:1000])
     spoilt = _run(cache)
-    assert spoilt["loaded"].count(True) == 1
-    assert not exes[0].exists()
+    assert spoilt["loaded"].count(True) == 2
+    assert not exes[-1].exists()
     # ... and an executable JAX loaded from its own cache is not kept (it would not serialise
     # whole): the file stays missing, the numbers stay the same.
     again = _run(cache)
-    assert again["loaded"].count(True) == 1
-    assert not exes[0].exists()
+    assert again["loaded"].count(True) == 2
+    assert not exes[-1].exists()
+    # What JAX's cache does not have is compiled afresh and kept again.
+    for entry in cache.glob("*-cache"):  # JAX's own files
+        entry.unlink()
+    rewritten = _run(cache)
+    assert rewritten["loaded"].count(True) == 2 and exes[-1].exists()
+    assert _run(cache)["loaded"].count(True) == 3
     assert cold["numbers"] == reference
     assert warm["numbers"] == reference
     assert spoilt["numbers"] == reference
     assert again["numbers"] == reference
+    assert rewritten["numbers"] == reference
 
 
 def _exported(source: str, filename: str) -> object:

@@ -23,7 +23,7 @@ so an edit of sinkjax that leaves the computation as it was finds it again. Each
 checksum of its contents; a file that is missing, corrupt, truncated or unreadable is made
 afresh (with a log line), so a bad cache can cost time but never change a number or fail a run:
 the executable loaded is the one the export compiles to, byte for byte. Only an executable
-compiled afresh is kept (:data:`FRESH_EVENT`).
+compiled afresh is kept (:func:`_compile_fresh`).
 """
 
 from __future__ import annotations
@@ -144,16 +144,22 @@ class _Unpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"unknown reference {pid!r}")
 
 
-# JAX records this event when it has compiled a function afresh and writes it to its persistent
-# cache. An executable JAX loaded from that cache does not serialise whole (with this jaxlib it
-# lost kernels: "Function ... not found" at its first call), so only a fresh compile is kept.
+# An executable JAX loaded from its persistent cache does not serialise whole (with this jaxlib it
+# lost kernels: "Function ... not found" at its first call), so only a fresh compile is kept. JAX
+# records USE_EVENT when a compile asks its persistent cache, then HIT_EVENT if the cache had it
+# (FRESH_EVENT: a miss it writes, which a compile under its time threshold never is). A compile
+# that JAX answers from memory records neither, and is not taken for fresh either.
+USE_EVENT = "/jax/compilation_cache/compile_requests_use_cache"
+HIT_EVENT = "/jax/compilation_cache/cache_hits"
 FRESH_EVENT = "/jax/compilation_cache/cache_misses"
-_fresh = threading.local()
+_EVENTS = (USE_EVENT, HIT_EVENT, FRESH_EVENT)
+_fresh = threading.local()  # per thread: how often each of _EVENTS was recorded
 
 
 def _count_fresh(event: str, **kwargs: object) -> None:
-    if event == FRESH_EVENT:
-        _fresh.count = getattr(_fresh, "count", 0) + 1
+    if event in _EVENTS:
+        counts = _fresh.__dict__
+        counts[event] = counts.get(event, 0) + 1
 
 
 @functools.cache
@@ -165,12 +171,14 @@ def _listen_for_fresh() -> None:
 
 def _compile_fresh(jitted: Any, args: tuple[Any, ...]) -> tuple[Any, bool]:
     """``jitted`` compiled for ``args``, and whether this thread compiled it afresh (rather than
-    loading it from JAX's persistent cache)."""
+    loading it from JAX's persistent cache, or from its memory)."""
     _listen_for_fresh()
     lowered = jitted.lower(*args)
-    before = getattr(_fresh, "count", 0)  # counted over this module's compile alone
+    before = dict(_fresh.__dict__)  # counted over this module's compile alone
     compiled = lowered.compile()
-    return compiled, getattr(_fresh, "count", 0) > before
+    seen = {e: _fresh.__dict__.get(e, 0) - before.get(e, 0) for e in _EVENTS}
+    fresh = seen[FRESH_EVENT] > 0 or (seen[USE_EVENT] > 0 and seen[HIT_EVENT] == 0)
+    return compiled, fresh
 
 
 def _has_tracer(args: tuple[Any, ...]) -> bool:
@@ -246,7 +254,7 @@ class ExecutableCache:
         if loaded is not None:
             return loaded
         compiled, fresh = _compile_fresh(jitted, args)
-        if not fresh:  # loaded by JAX from its cache: not kept (FRESH_EVENT)
+        if not fresh:  # loaded by JAX from its cache (or memory): not kept
             return compiled
         try:
             from jax.experimental import serialize_executable
