@@ -95,7 +95,10 @@ def begin() -> None:
         return
     from .compile_cache import cache_dir
 
-    directory = cache_dir()
+    try:
+        directory = cache_dir()
+    except RuntimeError:  # no home directory: the command says so itself
+        return
     if directory is None:
         return
     folder = directory / "executables"
