@@ -247,7 +247,7 @@ def read_hints(folder: Path) -> dict[tuple[int, int], list[str]]:
 def first_size(args: Sequence[str]) -> tuple[int, int] | None:
     """(width, height) of the first PATH among ``sinkjax estimate``'s arguments: an image's,
     or a directory's first image's, from its header; None for a video or anything unread."""
-    from .image_file import IMAGE_EXTENSIONS, header_size
+    from .image_file import header_size, is_image_path
 
     i = 0
     while i < len(args):
@@ -261,14 +261,10 @@ def first_size(args: Sequence[str]) -> tuple[int, int] | None:
                 names = sorted(os.listdir(path))
             except OSError:
                 return None
-            images = [n for n in names if not n.startswith(".") and _is_image(n, IMAGE_EXTENSIONS)]
+            images = [n for n in names if not n.startswith(".") and is_image_path(n)]
             return header_size(path / images[0]) if images else None
-        return header_size(path) if _is_image(arg, IMAGE_EXTENSIONS) else None
+        return header_size(path) if is_image_path(arg) else None
     return None
-
-
-def _is_image(name: str, extensions: Sequence[str]) -> bool:
-    return os.path.splitext(name)[1].lower() in extensions
 
 
 # ----------------------------------------------------------------------------- the platform
@@ -300,23 +296,17 @@ def get_ready_ahead() -> None:
     threading.Thread(target=backend_ready, name="sinkjax-ready", daemon=True).start()
 
 
-def _forget_ready() -> None:
-    # A forked child has none of its parent's threads: a lock held by one would never open.
-    global _READY_LOCK
-    _READY_LOCK = threading.Lock()
-    get_ready_ahead.cache_clear()
-
-
-os.register_at_fork(after_in_child=_forget_ready)
-
-
 def _identity(x: Any) -> Any:
     return x
 
 
 def _forget() -> None:
-    # A forked child has none of its parent's threads: what they were loading never arrives.
+    # A forked child has none of its parent's threads: what they were loading never arrives,
+    # and a lock one of them held would never open.
+    global _READY_LOCK
     _ahead.clear()
+    _READY_LOCK = threading.Lock()
+    get_ready_ahead.cache_clear()
 
 
 os.register_at_fork(after_in_child=_forget)

@@ -202,6 +202,7 @@ class Loaded:
         self.jitted = jit(exported.call)
         self._compiled: Any = None
         self._lock = threading.Lock()
+        self._noted = False  # early.note: once, at the first call
 
     def load(self) -> Any:
         """The compiled executable (a ``jax.stages.Compiled``)."""
@@ -213,7 +214,9 @@ class Loaded:
     def __call__(self, *args: Any) -> Any:
         if _has_tracer(args):
             return self.jitted(*args)
-        early.note(self._cache.directory, self._key, self._size)  # what the next run loads
+        if not self._noted:  # what the next run loads ahead, in the order first called
+            self._noted = True
+            early.note(self._cache.directory, self._key, self._size)
         return self.load()(*args)
 
 

@@ -133,6 +133,16 @@ def image_size(f: BinaryIO, fmt: str, head: bytes) -> tuple[int, int] | None:
     return _jpeg_size(f)
 
 
+def is_image_path(path: str | Path) -> bool:
+    """Whether ``path``'s extension is an image's (:data:`IMAGE_EXTENSIONS`)."""
+    return os.path.splitext(str(path))[1].lower() in IMAGE_EXTENSIONS
+
+
+def is_video_path(path: str | Path) -> bool:
+    """Whether ``path``'s extension is a video's (:data:`VIDEO_EXTENSIONS`)."""
+    return os.path.splitext(str(path))[1].lower() in VIDEO_EXTENSIONS
+
+
 def header_size(path: str | Path) -> tuple[int, int] | None:
     """(width, height) px of the image file at ``path`` from its header alone; None if it cannot
     be read or is not a PNG, JPEG, BMP or TIFF with a size in its header."""

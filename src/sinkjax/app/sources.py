@@ -18,7 +18,12 @@ from pathlib import Path
 from typing import Any
 
 from ..rig import Rig, RigError, read_rig_toml, rig_from_dict
-from .image_file import IMAGE_EXTENSIONS as IMAGE_EXTENSIONS, VIDEO_EXTENSIONS as VIDEO_EXTENSIONS
+from .image_file import (
+    IMAGE_EXTENSIONS as IMAGE_EXTENSIONS,
+    VIDEO_EXTENSIONS as VIDEO_EXTENSIONS,
+    is_image_path as is_image_path,
+    is_video_path as is_video_path,
+)
 
 log = logging.getLogger("sinkjax")
 
@@ -95,18 +100,6 @@ class Inputs:
     def directory_rigs(self) -> tuple[Path, ...]:
         """The rig files the recordings would use, in input order (duplicates kept)."""
         return tuple(p for rec in self.recordings if (p := rec.own_rig_file) is not None)
-
-
-def _ext(path: str | Path) -> str:
-    return os.path.splitext(str(path))[1].lower()
-
-
-def is_image_path(path: str | Path) -> bool:
-    return _ext(path) in IMAGE_EXTENSIONS
-
-
-def is_video_path(path: str | Path) -> bool:
-    return _ext(path) in VIDEO_EXTENSIONS
 
 
 def expand_paths(paths: Sequence[str | Path]) -> Inputs:
