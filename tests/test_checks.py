@@ -274,3 +274,46 @@ def test_line_shift_std_moves_z0_by_the_shift() -> None:
     dtheta = 2.5 / (100.0 * math.sin(math.acos(0.4)))
     assert float(std[1]) == pytest.approx(dtheta, rel=1e-3)
     assert float(std[2]) == pytest.approx(dtheta, rel=1e-3)
+
+
+def _rim_crossing_deg(direction_deg: float, through: tuple[float, float], end: str) -> float:
+    """θ (deg) where the line through ``through`` (u, v) at ``direction_deg`` meets a rim of
+    100 px about O, on the entry (larger u) or exit side: a quadratic solved by NumPy."""
+    t = np.radians(direction_deg)
+    d, q = np.array([np.cos(t), np.sin(t)]), np.asarray(through, float)
+    points = [q + d * s for s in np.roots([1.0, 2.0 * q @ d, q @ q - 100.0**2]).real]
+    u, v = max(points, key=lambda x: x[0]) if end == "A" else min(points, key=lambda x: x[0])
+    return float(np.degrees(np.arctan2(u, v) if end == "A" else np.arctan2(-u, v)))
+
+
+def test_a_steep_end_widens_its_angle_by_the_distance_to_the_equivalent_lines_end() -> None:
+    # Rim r = 100 px about O; the equivalent line v = 40 px (k = 0). The entry end's tangent rises
+    # towards the rim at 40 degrees (steeper than soil rests, as where the mask's edge runs up a
+    # shaded rim ring) through (60, 42); the exit end's at 10 degrees through (-85, 42).
+    from sinkjax.soft.checks import MAX_END_SLOPE_DEG, end_slopes_rad, steep_end_std
+
+    def params(a_deg: float, b_deg: float) -> jax.Array:
+        # The tangent -sin(a) u + cos(a) v = c through a point (u, v): c = -sin(a) u + cos(a) v.
+        a, b = math.radians(a_deg), math.radians(b_deg)
+        c_a = -math.sin(a) * 60.0 + math.cos(a) * 42.0
+        c_b = -math.sin(b) * -85.0 + math.cos(b) * 42.0
+        p = [0.0, 0.0, 100.0, 0.0, 40.0, a, c_a, b, c_b, 0.0, 0.0]
+        assert len(p) == N_PARAMS
+        return jnp.asarray(p)
+
+    p = params(-40.0, 10.0)
+    assert np.degrees(np.asarray(end_slopes_rad(p))) == pytest.approx([40.0, 10.0], abs=1e-9)
+    std = np.degrees(np.asarray(steep_end_std(p)))
+    on_line = math.degrees(math.atan2(math.sqrt(100.0**2 - 40.0**2), 40.0))
+    on_curve = _rim_crossing_deg(-40.0, (60.0, 42.0), "A")
+    assert on_curve > on_line + 15.0  # A lies well up the rim from the line's end
+    assert std[1] == pytest.approx(on_curve - on_line, rel=1e-6)
+    assert std[0] == 0.0 and std[2] == 0.0  # z0 is the line's; the exit end is no steeper
+    # Just either side of the limit; and the same tangent the other way up is as steep.
+    assert float(steep_end_std(params(-(MAX_END_SLOPE_DEG - 0.5), 10.0))[1]) == 0.0
+    assert float(steep_end_std(params(-(MAX_END_SLOPE_DEG + 0.5), 10.0))[1]) > 0.0
+    assert np.degrees(float(end_slopes_rad(params(140.0, 10.0))[0])) == pytest.approx(40.0)
+    # Finite gradients, steep or not (calibration and training differentiate through sigma).
+    for q in (p, params(-5.0, 3.0)):
+        g = jax.grad(lambda x: jnp.sum(steep_end_std(x)))(q)
+        assert bool(jnp.all(jnp.isfinite(g)))

@@ -57,6 +57,10 @@ weighs the model against its own inputs, with no threshold taken from the render
   line moved that far (:func:`line_shift_std`) adds to sigma in quadrature. On a frame whose
   mask has a sharp soil edge both are about zero and sigma is unchanged. A shallow chord's depth
   (``soft.shallow``) adds its margin: a shadow or soil just below the rim pulls the edge in as far.
+- **an end steeper than soil stands** (a sigma, not a test): an end tangent more than
+  :data:`MAX_END_SLOPE_DEG` steeper than the equivalent line is more likely the mask's edge
+  running up the inside of the rim than the soil; that end's angle gets the difference to where
+  the equivalent line meets the rim in its sigma (:func:`steep_end_std`).
 
 Frames failing any test get status ``implausible`` (their message names the test) instead of a
 confident number. Everything is pure JAX, jit- and vmap-able.
@@ -69,7 +73,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from .model import Evidence, measurements, residuals
+from ..geometry import entry_angle_rad, exit_angle_rad
+from .model import Evidence, end_point, measurements, residuals
 from .probes import bilinear, mean_where, on_ring, soil_lost
 
 N_RING_SAMPLES = 256
@@ -325,6 +330,34 @@ def line_shift_std(
     down = jnp.zeros_like(p).at[4].set(jnp.sqrt(1.0 + k * k)).at[6].set(1.0).at[8].set(1.0)
     g = jax.jacfwd(measurements)(p, wheel_radius_mm)
     return jnp.abs(g @ down) * check.line_shift_px
+
+
+# A soil surface at rest is no steeper than its angle of repose: 30-35 degrees for dry sand and
+# most regolith simulants. An end tangent steeper than this against the equivalent line is more
+# likely the mask's edge running up the inside of the rim (a shaded or dusted rim ring taken for
+# soil) than the soil (experiments/end_steepness.py).
+MAX_END_SLOPE_DEG = 30.0
+
+
+def end_slopes_rad(p: Float[Array, " P"]) -> Float[Array, " 2"]:
+    """The acute angle (rad, in [0, pi/2]) between each end's tangent (A, B) and the
+    equivalent line, both in the wheel frame (``soft.model``)."""
+    d = p[jnp.asarray([5, 7])] - jnp.arctan(p[3])
+    return jnp.arctan2(jnp.abs(jnp.sin(d)), jnp.abs(jnp.cos(d)))
+
+
+def steep_end_std(p: Float[Array, " P"]) -> Float[Array, " 3"]:
+    """The sigma (z0 mm, theta1 rad, theta2 rad) of an end whose tangent is steeper than soil
+    rests (:data:`MAX_END_SLOPE_DEG`) against the equivalent line: the difference between that
+    end's angle and the angle at which the equivalent line meets the rim (the paper's A or B).
+    Two models of the end that disagree that much say the end lies somewhere between them; 0
+    for an end no steeper (its curve is trusted, as its own sigma says)."""
+    alpha, c = jnp.arctan(p[3]), p[4] * jnp.cos(jnp.arctan(p[3]))
+    a, b = end_point(alpha, c, p[2], 1.0), end_point(alpha, c, p[2], -1.0)
+    on_line = jnp.stack([entry_angle_rad(a[0], a[1]), exit_angle_rad(b[0], b[1])])
+    steep = end_slopes_rad(p) > jnp.radians(MAX_END_SLOPE_DEG)
+    apart = jnp.where(steep, jnp.abs(measurements(p)[1:] - on_line), 0.0)
+    return jnp.concatenate([jnp.zeros((1,), p.dtype), apart])
 
 
 def message(code: int) -> str:

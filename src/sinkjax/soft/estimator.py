@@ -20,7 +20,7 @@ from ..rig import Rig, SegmentationParams, rim_hint_range_px, srgb_flag
 from ..status import Status
 from .adaptive import default_segmenter
 from .below import has_contact, recounted
-from .checks import line_shift_std, plausibility
+from .checks import line_shift_std, plausibility, steep_end_std
 from .colour import linear_light
 from .denoise import sigma_factor
 from .fit import build_evidence, fit, rim_and_boundary_capacity
@@ -193,7 +193,7 @@ def finish(
     check = plausibility(image, mask, p, ev, contact, stepped_out)
     std = measurement_std(p, cov, wheel_radius_mm, uncertainty) * check.sigma_scale
     std = std * sigma_factor(prepared.blur_px)
-    std = jnp.sqrt(std**2 + line_shift_std(p, check, wheel_radius_mm) ** 2)
+    std = jnp.sqrt(std**2 + line_shift_std(p, check, wheel_radius_mm) ** 2 + steep_end_std(p) ** 2)
     measured = jnp.where(contact, Status.OK.code, Status.NO_CONTACT.code)
     # With the recording's rim, a soil boundary inside it is evidence enough of the wheel.
     seen = choice.seen | ((choice.prior_weight > 0) & contact)
