@@ -11,7 +11,8 @@ usually stands next to a wheel.
 This script measures, with the renderer's exact truth, how the angle error depends on that
 steepness, ``|alpha - atan(k)|`` (the end tangent's angle against the equivalent line's, degrees),
 over the soft method's own end fits, and what two responses would do, computed offline from the
-same fits (the estimator is not changed):
+same fits with the sigmas as they were before the estimator took the second one up (the "widen"
+row at 30 degrees is what ``sinkjax`` now reports):
 
 - **flag**: report a frame ``implausible`` when an end is steeper than a limit;
 - **widen**: add, for an end steeper than the limit, the difference between its angle and the
