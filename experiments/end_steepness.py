@@ -9,10 +9,11 @@ far up the rim while the equivalent line is right: θ off by 10-25 degrees on a 
 usually stands next to a wheel.
 
 This script measures, with the renderer's exact truth, how the angle error depends on that
-steepness, ``|alpha - atan(k)|`` (the end tangent's angle against the equivalent line's, degrees),
-over the soft method's own end fits, and what two responses would do, computed offline from the
-same fits with the sigmas as they were before the estimator took the second one up (the "widen"
-row at 30 degrees is what ``sinkjax`` now reports):
+steepness (the acute angle between the end tangent and the equivalent line, degrees,
+``sinkjax.soft.checks.end_slopes_rad``) over the soft method's own end fits, and what two
+responses would do, computed offline from the same fits with the sigmas as they were before
+the estimator took the second one up (the "widen" row at 30 degrees is what ``sinkjax`` now
+reports):
 
 - **flag**: report a frame ``implausible`` when an end is steeper than a limit;
 - **widen**: add, for an end steeper than the limit, the difference between its angle and the
@@ -47,15 +48,6 @@ BINS = ((0, 10), (10, 20), (20, 25), (25, 30), (30, 90))
 LIMITS = (20.0, 25.0, 30.0)
 
 
-def line_angles(k: float, b: float, r: float) -> tuple[float, float]:
-    """(θ1, θ2) degrees where the equivalent line y = k x + b (wheel frame) meets the rim."""
-    a = 1.0 + k * k
-    disc = max(r * r * a - b * b, 0.0)
-    x_a, x_b = (-k * b + np.sqrt(disc)) / a, (-k * b - np.sqrt(disc)) / a
-    y_a, y_b = k * x_a + b, k * x_b + b
-    return float(np.degrees(np.arctan2(x_a, y_a))), float(np.degrees(np.arctan2(-x_b, y_b)))
-
-
 def before_widening(p: np.ndarray, std_rad: list[float]) -> list[float]:
     """The angles' sigmas (deg) as the estimator reported them before it widened steep ends
     (``sinkjax.soft.checks.steep_end_std``, added in quadrature): this study's baseline, so that
@@ -76,6 +68,7 @@ def measure(root: Path, seed: int, n_rec: int, n_frames: int) -> list[dict]:
     from sinkjax import synth
     from sinkjax.rig import load_rig
     from sinkjax.soft.batch import SoftRecording, _Run
+    from sinkjax.soft.checks import end_slopes_rad, line_end_angles_rad
 
     rows = []
     for pi, preset in enumerate(PRESETS):
@@ -93,17 +86,17 @@ def measure(root: Path, seed: int, n_rec: int, n_frames: int) -> list[dict]:
             out = run.finish(images, run.prepare(images, rim))
             for i, t in enumerate(truth):
                 p = np.asarray(out.params[i], float)
-                l1, l2 = line_angles(p[3], p[4], p[2])
+                steep = np.degrees(np.asarray(end_slopes_rad(out.params[i]), float))
+                on_line = np.degrees(np.asarray(line_end_angles_rad(out.params[i]), float))
                 rows.append(
                     dict(
                         preset=preset, recording=j, frame=i, terrain=t["terrain"],
-                        status=int(out.status[i]), line_deg=float(np.degrees(np.arctan(p[3]))),
-                        alpha=[float(np.degrees(p[5])), float(np.degrees(p[7]))],
+                        status=int(out.status[i]), steep=[float(x) for x in steep],
                         theta=[float(np.degrees(out.theta1_rad[i])),
                                float(np.degrees(out.theta2_rad[i]))],
                         sigma=before_widening(p, [float(out.theta1_std_rad[i]),
                                                   float(out.theta2_std_rad[i])]),
-                        line_theta=[l1, l2],
+                        line_theta=[float(x) for x in on_line],
                         truth=[float(t["theta1_deg"]), float(t["theta2_deg"])],
                         sinkage_mm=float(t["sinkage_mm"]),
                     )
@@ -124,7 +117,7 @@ def ends(rows: list[dict]) -> list[dict]:
                 dict(
                     frame=(r["preset"], r["recording"], r["frame"]), end="AB"[e],
                     ok=r["status"] == 0, terrain=r["terrain"], preset=r["preset"],
-                    steep=abs(r["alpha"][e] - r["line_deg"]),
+                    steep=r["steep"][e],
                     err=abs(r["theta"][e] - r["truth"][e]),
                     theta=r["theta"][e], line=r["line_theta"][e], truth=r["truth"][e],
                     sigma=r["sigma"][e], q=("theta1", "theta2")[e],

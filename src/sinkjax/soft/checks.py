@@ -346,17 +346,22 @@ def end_slopes_rad(p: Float[Array, " P"]) -> Float[Array, " 2"]:
     return jnp.arctan2(jnp.abs(jnp.sin(d)), jnp.abs(jnp.cos(d)))
 
 
+def line_end_angles_rad(p: Float[Array, " P"]) -> Float[Array, " 2"]:
+    """(theta1, theta2) rad where the equivalent line meets the rim (the paper's A and B)."""
+    alpha = jnp.arctan(p[3])
+    c = p[4] * jnp.cos(alpha)  # the line y = k x + b as -sin(a) u + cos(a) v = c
+    a, b = end_point(alpha, c, p[2], 1.0), end_point(alpha, c, p[2], -1.0)
+    return jnp.stack([entry_angle_rad(a[0], a[1]), exit_angle_rad(b[0], b[1])])
+
+
 def steep_end_std(p: Float[Array, " P"]) -> Float[Array, " 3"]:
     """The sigma (z0 mm, theta1 rad, theta2 rad) of an end whose tangent is steeper than soil
     rests (:data:`MAX_END_SLOPE_DEG`) against the equivalent line: the difference between that
     end's angle and the angle at which the equivalent line meets the rim (the paper's A or B).
     Two models of the end that disagree that much say the end lies somewhere between them; 0
     for an end no steeper (its curve is trusted, as its own sigma says)."""
-    alpha, c = jnp.arctan(p[3]), p[4] * jnp.cos(jnp.arctan(p[3]))
-    a, b = end_point(alpha, c, p[2], 1.0), end_point(alpha, c, p[2], -1.0)
-    on_line = jnp.stack([entry_angle_rad(a[0], a[1]), exit_angle_rad(b[0], b[1])])
     steep = end_slopes_rad(p) > jnp.radians(MAX_END_SLOPE_DEG)
-    apart = jnp.where(steep, jnp.abs(measurements(p)[1:] - on_line), 0.0)
+    apart = jnp.where(steep, jnp.abs(measurements(p)[1:] - line_end_angles_rad(p)), 0.0)
     return jnp.concatenate([jnp.zeros((1,), p.dtype), apart])
 
 
