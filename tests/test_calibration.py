@@ -616,23 +616,25 @@ def test_loss_value_stops_once_the_loss_is_above_its_bound(fake_measure) -> None
     np.testing.assert_array_equal(np.asarray(kept.frames.values), np.asarray(full.frames.values))
 
 
+class _Counted:
+    """The compiled one-frame loss, appending 1 to ``measured`` for each frame it measures."""
+
+    def __init__(self, real, measured: list[int]):
+        self.real, self.measured = real, measured
+
+    def __call__(self, *args, **kwargs):
+        self.measured.append(1)
+        return self.real(*args, **kwargs)
+
+    def __getattr__(self, name):  # lower(), for the background compile
+        return getattr(self.real, name)
+
+
 def test_pruning_changes_nothing_but_the_frames_measured(
     fake_measure, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     measured: list[int] = []  # one entry per frame measured by the compiled loss
-
-    class Counted:
-        def __init__(self, real):
-            self.real = real
-
-        def __call__(self, *args, **kwargs):
-            measured.append(1)
-            return self.real(*args, **kwargs)
-
-        def __getattr__(self, name):  # lower(), for the background compile
-            return getattr(self.real, name)
-
-    monkeypatch.setattr(CL, "_loss_value", Counted(CL._loss_value))
+    monkeypatch.setattr(CL, "_loss_value", _Counted(CL._loss_value, measured))
     results, counts = [], []
     for prune in (False, True):
         measured.clear()
@@ -642,6 +644,44 @@ def test_pruning_changes_nothing_but_the_frames_measured(
     assert pruned.rig == whole.rig and pruned.loss_after == whole.loss_after
     assert pruned.grid_best_loss == whole.grid_best_loss and pruned.losses == whole.losses
     assert counts[1] < 0.8 * counts[0], counts  # grid points that cannot be lowest stop early
+
+
+def test_the_grid_shows_its_progress_in_frames_measured(
+    fake_measure, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    measured: list[int] = []
+    monkeypatch.setattr(CL, "_loss_value", _Counted(CL._loss_value, measured))
+    in_grid: list[int] = []  # frames measured inside the grid's scoring, counted apart
+    score = O.score_pruned
+
+    def counted(*args, **kwargs):
+        before = len(measured)
+        out = score(*args, **kwargs)
+        in_grid.append(len(measured) - before)
+        return out
+
+    monkeypatch.setattr(O, "score_pruned", counted)
+    stages: list[tuple[str, int, int]] = []
+    C.calibrate(
+        fake_frames(theta2=30.0),
+        FAKE_RIG,
+        steps=2,
+        polish_measurements=3,
+        progress=True,
+        on_stage=lambda *a: stages.append(a),
+    )
+    err = capsys.readouterr().err.replace("\r", "\n")
+    done = [line for line in err.splitlines() if line.startswith("grid:")][-1]
+    n, total = (int(v) for v in done.split("|")[2].split()[0].split("/"))
+    # The grid and its relaxed veto points (pruned: fewer than every point on both frames).
+    assert len(in_grid) == 2 and n == total == sum(in_grid), (done, in_grid)
+    assert total < 2 * (len(list(itertools.product(*C.GRID.values()))) + O.N_RELAXED)
+    grid = [s for s in stages if s[0] == "grid"]
+    assert [s[1] for s in grid] == sorted(s[1] for s in grid) and grid[-1] == ("grid", n, n)
+    assert all(s[1] <= s[2] for s in grid)
+    polish = [s[1:] for s in stages if s[0] == "polish"]
+    assert polish == [(k, 3) for k in range(1, len(polish) + 1)] and 1 <= len(polish) <= 3
+    assert [s[0] for s in stages] == ["grid"] * len(grid) + ["polish"] * len(polish)
 
 
 def test_zero_steps_is_the_grid_search_alone_without_a_gradient(

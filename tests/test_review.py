@@ -26,6 +26,7 @@ import sinkjax
 from sinkjax.app.results import COLUMNS, FrameResult
 from sinkjax.review import LabelGeometry, LabelStore, label_values, suspicion
 from sinkjax.review.command import Server, bind
+from sinkjax.review.jobs import Jobs
 from sinkjax.review.server import create_app
 from sinkjax.review.session import ReviewSession
 
@@ -359,15 +360,21 @@ def test_calibrate_button_calibrates_saves_the_rig_and_remeasures(
     tuned = sinkjax.SegmentationParams(p_d_hue=0.8, p_a_hue=1.2)
     seen: dict[str, object] = {}
 
-    def fake_calibrate(frames, rig, *, steps, callback):
+    def fake_calibrate(frames, rig, *, steps, callback, on_stage):
         seen.update(names=frames.names, steps=steps, rig=rig)
+        for done, total in ((2, 6), (4, 6), (4, 4)):  # the grid's frames; its pruned total
+            on_stage("grid", done, total)
         for i in range(steps + 1):
             callback(i, 10.0 - i)
+        on_stage("polish", 1, 2)
         errors = Errors(1.0, 2.0, 3.0, 0.1, 3, 3)
         new = sinkjax.Rig(rig.wheel_radius_mm, rig.confidence_rect, rig.travel, tuned)
         return CalibrationResult(new, (10.0, 9.0, 8.0), 2, errors, errors, 0.1)
 
     monkeypatch.setattr(sinkjax, "calibrate", fake_calibrate)
+    shown: list[tuple[float, str]] = []
+    update = Jobs._update
+    monkeypatch.setattr(Jobs, "_update", lambda self, *a: (shown.append(a), update(self, *a)))
     client = _client(session)
     rig = session.recordings[0].rig
     for row in _truth(recording)[:2]:
@@ -385,6 +392,15 @@ def test_calibrate_button_calibrates_saves_the_rig_and_remeasures(
     assert written.segmentation.as_dict() == pytest.approx(tuned.as_dict())
     assert session.recordings[0].rig.segmentation.as_dict() == pytest.approx(tuned.as_dict())
     assert job["result"]["after"]["theta2_deg"] == 3.0
+    # The bar moves through the grid, the steps and the polish, never back, then re-measures.
+    calibrating = [(p, m) for p, m in shown if m.startswith("calibrating: ")]
+    assert [m for _, m in calibrating[:3]] == [
+        f"calibrating: frames measured on a grid of thresholds, {d}" for d in ("2/6", "4/6", "4/4")
+    ]
+    assert calibrating[-1][1] == "calibrating: polishing, 1/2"
+    bar = [p for p, _ in calibrating]
+    assert bar == sorted(bar) and bar[0] == pytest.approx(0.8 * 0.4 / 3)
+    assert bar[-1] == pytest.approx(0.8 * 0.95) and shown[-1][0] > bar[-1]
     assert all(entry["result"] is not None for entry in client.get("/api/table").json())
 
 

@@ -233,6 +233,10 @@ class Compiling:
     def __init__(self, loss: threading.Thread | None, gradient: threading.Thread | None) -> None:
         self._loss, self._gradient = loss, gradient
 
+    def loss_pending(self) -> bool:
+        """Whether the loss is still being compiled."""
+        return self._loss is not None and self._loss.is_alive()
+
     def loss_ready(self) -> None:
         """Wait until the loss alone is compiled (or its compile failed)."""
         if self._loss is not None:

@@ -44,9 +44,11 @@ from .loss import LossAndGrad, raw_values, to_raw
 from .rescore import (
     N_RESCORED,
     POLISH_MEASUREMENTS,
+    FrameCounter,
     _as_estimate_measures,
     _distinct_lowest,
     _with,
+    polish_advance,
     polish_best,
     score_pruned,
 )
@@ -141,6 +143,7 @@ def calibrate(
     seed: int = 0,
     progress: bool = False,
     callback: Callable[[int, float], None] | None = None,
+    on_stage: Callable[[str, int, int], None] | None = None,
     grid: dict[str, tuple[float, ...]] | None = GRID,
     starts: int = N_STARTS,
     rim: str | RecordingRim = "recording",
@@ -166,6 +169,11 @@ def calibrate(
     point finds; 0: none, nor with ``steps=0``). The result's ``checks`` say whether the last
     descent converged, which frames disagree with the rest, and the leave-one-out error.
     ``losses`` is the final descent's loss per step (from its starting point).
+    Progress: ``progress`` draws bars on the terminal (the grid's frames measured, Adam's steps,
+    the polish's measurements); ``callback(step, loss)`` is called at each Adam step, and
+    ``on_stage(stage, done, total)`` as the grid ("grid": frames measured, of at most
+    ``total``; points that cannot be among the lowest stop early, and the last call has
+    ``done == total``) and the polish ("polish": measurements, of at most ``total``) go on.
     ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
     ``sinkjax estimate`` measures them: their rim circle is found once, from
     ``frames.rim_source`` (the recording's first frames where ``frames.rim_images`` holds them,
@@ -207,6 +215,12 @@ def calibrate(
         augment_config=augment_config if augment else None, value=True, gradient=bool(steps),
     )  # fmt: skip
     held = labelled_rim(frames, rig, rim)
+    if progress and compiling.loss_pending():
+        height, width = frames.images.shape[1:3]
+        tqdm.write(
+            f"preparing the calibration loss for {width}x{height} frames (compiled once per "
+            "image size, then loaded from the compile cache)"
+        )
     compiling.loss_ready()
 
     def call(r: Array, k: PRNGKeyArray = key, **augmenting: object) -> LossAndGrad:
@@ -237,14 +251,29 @@ def calibrate(
         jnp.asarray(raw_values({**base, **dict(zip(held_as, c, strict=True))}), dt)
         for c in itertools.product(*held_as.values())
     ]
-    points += score_pruned(points, raws, value, exact)
+    # The grid's frames as measured (at most every point on every frame; pruning stops some).
+    n_frames = int(images.shape[0])
+    grid_total = (len(raws) + (N_RELAXED if grid else 0)) * n_frames
+    grid_bar = tqdm(total=grid_total, desc="grid", unit="frame", disable=not progress or not raws)
+
+    def grid_advance(k: int) -> None:
+        grid_bar.update(k)
+        if on_stage is not None:
+            on_stage("grid", grid_bar.n, grid_total)
+
+    counted = FrameCounter(value, grid_advance)
+    points += score_pruned(points, raws, counted, exact)
     n_grid = len(points)
     if grid:
         best = _distinct_lowest(points, range(n_grid), N_RELAXED)
         relaxed = float(to_raw(SegmentationParams(veto_fraction=jnp.asarray(VETO_RELAXED)))[6])
         loosened = [points[i][0].at[6].set(relaxed) for i in best]
-        points += score_pruned(points, loosened, value, exact)
+        points += score_pruned(points, loosened, counted, exact)
         n_grid = len(points)
+    grid_bar.total = grid_bar.n  # points that could not be among the lowest stopped early
+    grid_bar.close()
+    if on_stage is not None and raws:
+        on_stage("grid", grid_bar.n, grid_bar.n)
     chosen = _distinct_lowest(points, range(n_grid), starts) if grid else [0]
     probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))
     bar = tqdm(total=steps, desc="calibrate", unit="step", disable=not progress)
@@ -296,7 +325,7 @@ def calibrate(
                 else value(r, b)
             ),
             polish_measurements,
-            lambda _: bar.update(),
+            lambda _: polish_advance(bar, on_stage, polish_measurements),
         )
         bar.close()
     raw_best, out_best = points[i_best]

@@ -4,17 +4,20 @@ Every point calibration scores is measured with the rim circle the starting rig 
 labelled frames; the calibrated rig will be measured with the rim its own thresholds find. These
 helpers of :func:`sinkjax.calibration.optimise.calibrate` pick the starts (one of each loss),
 score the final candidates again with their own rims, and polish the result by a compass search
-in which every candidate is measured with its own rim (:func:`polish`).
+in which every candidate is measured with its own rim (:func:`polish`); :class:`FrameCounter`
+and :func:`polish_advance` report the grid's and the polish's progress.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from collections.abc import Callable
 from typing import Any
 
 import jax
+import numpy as np
 from jaxtyping import Array
 
 from ..rig import Rig, SegmentationParams
@@ -52,6 +55,35 @@ def _distinct_lowest(points: list[tuple[Array, LossAndGrad]], indices: range, k:
         if len(chosen) == k:
             break
     return chosen
+
+
+class FrameCounter:
+    """``value`` (a point's loss, frame by frame: ``compiled.loss_value``), calling ``advance``
+    with the number of frames each call measured; safe to call from the threads that score
+    points side by side."""
+
+    def __init__(self, value: Callable[..., LossAndGrad], advance: Callable[[int], object]) -> None:
+        self._value, self._advance, self._lock = value, advance, threading.Lock()
+
+    def __call__(
+        self, raw: Array, bound: float = math.inf, given: LossAndGrad | None = None
+    ) -> LossAndGrad:
+        out = self._value(raw, bound, given)
+        new = _measured(out) - (0 if given is None else _measured(given))
+        with self._lock:
+            self._advance(new)
+        return out
+
+
+def polish_advance(bar: Any, on_stage: Callable[[str, int, int], None] | None, total: int) -> None:
+    """Advance the polish's ``bar`` by one measurement and report it to ``on_stage``."""
+    bar.update()
+    if on_stage is not None:
+        on_stage("polish", bar.n, total)
+
+
+def _measured(out: LossAndGrad) -> int:
+    return int(np.sum(np.asarray(out.frames.status) >= 0))
 
 
 def score_pruned(

@@ -111,13 +111,24 @@ class Jobs:
         self._update(0.0, f"reading {store.path.name}")
         frames = sinkjax.read_labels(store.path, rig)
 
-        def step(i: int, loss: float) -> None:
+        # Calibration's own share of the bar: the grid, Adam's steps, the polish.
+        share = {"grid": (0.0, 0.4), "step": (0.4, 0.9), "polish": (0.9, 1.0)}
+
+        def show(stage: str, done: int, total: int, message: str) -> None:
+            lo, hi = share[stage]
             self._update(
-                _CALIBRATE_SHARE * i / steps, f"calibrating: step {i}/{steps}, loss {loss:.4g}"
+                _CALIBRATE_SHARE * (lo + (hi - lo) * min(done / max(total, 1), 1.0)), message
             )
 
+        def step(i: int, loss: float) -> None:
+            show("step", i, steps, f"calibrating: step {i}/{steps}, loss {loss:.4g}")
+
+        def stage(name: str, done: int, total: int) -> None:
+            what = "frames measured on a grid of thresholds" if name == "grid" else "polishing"
+            show(name, done, total, f"calibrating: {what}, {done}/{total}")
+
         self._update(0.0, f"calibrating on {len(frames.names)} frames (compiling)")
-        result = sinkjax.calibrate(frames, rig, steps=steps, callback=step)
+        result = sinkjax.calibrate(frames, rig, steps=steps, callback=step, on_stage=stage)
         out = Path(store.path).parent / CALIBRATED_FILENAME
         sinkjax.save_rig(
             result.rig,
