@@ -45,10 +45,10 @@ from .rescore import (
     N_RESCORED,
     POLISH_MEASUREMENTS,
     FrameCounter,
+    PolishProgress,
     _as_estimate_measures,
     _distinct_lowest,
     _with,
-    polish_advance,
     polish_best,
     score_pruned,
 )
@@ -256,10 +256,13 @@ def calibrate(
     grid_total = (len(raws) + (N_RELAXED if grid else 0)) * n_frames
     grid_bar = tqdm(total=grid_total, desc="grid", unit="frame", disable=not progress or not raws)
 
+    grid_done = [0]  # a disabled bar counts nothing
+
     def grid_advance(k: int) -> None:
         grid_bar.update(k)
+        grid_done[0] += k
         if on_stage is not None:
-            on_stage("grid", grid_bar.n, grid_total)
+            on_stage("grid", grid_done[0], grid_total)
 
     counted = FrameCounter(value, grid_advance)
     points += score_pruned(points, raws, counted, exact)
@@ -270,10 +273,10 @@ def calibrate(
         loosened = [points[i][0].at[6].set(relaxed) for i in best]
         points += score_pruned(points, loosened, counted, exact)
         n_grid = len(points)
-    grid_bar.total = grid_bar.n  # points that could not be among the lowest stopped early
+    grid_bar.total = grid_done[0]  # points that could not be among the lowest stopped early
     grid_bar.close()
     if on_stage is not None and raws:
-        on_stage("grid", grid_bar.n, grid_bar.n)
+        on_stage("grid", grid_done[0], grid_done[0])
     chosen = _distinct_lowest(points, range(n_grid), starts) if grid else [0]
     probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))
     bar = tqdm(total=steps, desc="calibrate", unit="step", disable=not progress)
@@ -325,7 +328,7 @@ def calibrate(
                 else value(r, b)
             ),
             polish_measurements,
-            lambda _: polish_advance(bar, on_stage, polish_measurements),
+            PolishProgress(bar, on_stage, polish_measurements),
         )
         bar.close()
     raw_best, out_best = points[i_best]

@@ -5,7 +5,7 @@ labelled frames; the calibrated rig will be measured with the rim its own thresh
 helpers of :func:`sinkjax.calibration.optimise.calibrate` pick the starts (one of each loss),
 score the final candidates again with their own rims, and polish the result by a compass search
 in which every candidate is measured with its own rim (:func:`polish`); :class:`FrameCounter`
-and :func:`polish_advance` report the grid's and the polish's progress.
+and :class:`PolishProgress` report the grid's and the polish's progress.
 """
 
 from __future__ import annotations
@@ -75,11 +75,20 @@ class FrameCounter:
         return out
 
 
-def polish_advance(bar: Any, on_stage: Callable[[str, int, int], None] | None, total: int) -> None:
-    """Advance the polish's ``bar`` by one measurement and report it to ``on_stage``."""
-    bar.update()
-    if on_stage is not None:
-        on_stage("polish", bar.n, total)
+class PolishProgress:
+    """Called once per polish measurement: advances ``bar`` and reports ("polish", done,
+    ``total``) to ``on_stage``."""
+
+    def __init__(
+        self, bar: Any, on_stage: Callable[[str, int, int], None] | None, total: int
+    ) -> None:
+        self._bar, self._on_stage, self._total, self._done = bar, on_stage, total, 0
+
+    def __call__(self, _: object) -> None:
+        self._bar.update()
+        self._done += 1  # a disabled bar counts nothing
+        if self._on_stage is not None:
+            self._on_stage("polish", self._done, self._total)
 
 
 def _measured(out: LossAndGrad) -> int:
