@@ -188,3 +188,45 @@ def test_module_key_ignores_source_locations_not_the_computation() -> None:
     assert module_key(a) == module_key(b)
     assert module_key(a) != module_key(_exported(body.replace("2.0", "3.0"), "/a/one.py"))
     assert module_key(a) != module_key(_exported(body.replace("axis=0", "axis=1"), "/a/one.py"))
+
+
+def test_a_compile_is_shown_on_the_bar_and_left_out_of_its_rate(tmp_path, monkeypatch) -> None:
+    import io
+    import re
+    import time
+
+    import jax.numpy as jnp
+    from tqdm import tqdm
+
+    from sinkjax.app import executables as X
+    from sinkjax.app.compile_cache import compile_notices
+    from sinkjax.app.run import _CompileNote
+
+    compile_for_real = X._compile_fresh
+
+    def slow_compile(*args: object) -> object:  # a compile of a known length
+        time.sleep(0.5)
+        return compile_for_real(*args)
+
+    monkeypatch.setattr(X, "_compile_fresh", slow_compile)
+    bar = tqdm(total=4, file=io.StringIO(), mininterval=0)
+    heard: list[tuple] = []
+    frame = np.ones((48, 64, 3), np.float32)  # (H, W, 3): announced as 64x48
+    time.sleep(0.3)
+    bar.update(1)  # a frame measured in 0.3 s: its time stays in the rate, the compile's not
+    printed = bar.start_t
+    with (
+        compile_notices(_CompileNote(bar)),
+        compile_notices(lambda size, started: heard.append((size, started, bar.postfix))),
+    ):
+        began = time.perf_counter()
+        loaded = ExecutableCache(tmp_path)("twice", jax.jit(lambda x: jnp.sum(2.0 * x)), (frame,))
+        assert float(loaded(frame)) == 2.0 * frame.size
+        took = time.perf_counter() - began
+    # The export (tracing, lowering), then the compile, each announced while it runs.
+    assert [h[:2] for h in heard] == [((64, 48), True), ((64, 48), False)] * 2
+    assert all("preparing the soft method for 64x48 frames" in h[2] for h in heard[::2])
+    assert re.fullmatch(r"prepared in [01] s, not counted in the rate", heard[3][2])
+    # unpause: the bar's clock restarts where it last printed, leaving out these waits alone.
+    assert 0.5 <= bar.start_t - printed < took + 0.1
+    bar.close()

@@ -12,15 +12,18 @@ sinkjax keeps its own JAX configuration.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
-
-from .executables import LOAD_EVENT
 
 CACHE_ENV = "SINKJAX_CACHE_DIR"
 OFF = ("off", "none", "0", "")
 
+# The time a process spends loading the soft method's exported functions from disk
+# (sinkjax.app.executables): reported as part of the run's compile time (CompileClock).
+LOAD_EVENT = "/sinkjax/exported_load_duration"
 # JAX events whose time spans make up "compiling": tracing to a jaxpr, lowering to MLIR, and
 # the backend's compile or its load from the persistent cache.
 _COMPILE_EVENTS = frozenset(
@@ -31,6 +34,36 @@ _COMPILE_EVENTS = frozenset(
         LOAD_EVENT,
     }
 )
+
+
+# Called with (frame size (width, height) or None, True) as a measuring function starts being
+# compiled (or loaded from JAX's cache) for a new shape, and with False when it is ready.
+CompileListener = Callable[[tuple[int, int] | None, bool], None]
+_listeners: list[CompileListener] = []
+
+
+@contextlib.contextmanager
+def compile_notices(listener: CompileListener) -> Iterator[None]:
+    """While inside, ``listener`` hears of every compile of the soft method's measuring
+    functions (:class:`sinkjax.app.executables.ExecutableCache`): a run's progress bar says
+    why it waits, and leaves that wait out of its rate and ETA."""
+    _listeners.append(listener)
+    try:
+        yield
+    finally:
+        _listeners.remove(listener)
+
+
+@contextlib.contextmanager
+def compiling(size: tuple[int, int] | None) -> Iterator[None]:
+    """Tell the listeners of :func:`compile_notices` that a compile for ``size`` runs inside."""
+    for listener in list(_listeners):
+        listener(size, True)
+    try:
+        yield
+    finally:
+        for listener in list(_listeners):
+            listener(size, False)
 
 
 def cache_dir(enabled: bool = True) -> Path | None:

@@ -2,27 +2,26 @@
 
 JAX's persistent compilation cache (:mod:`sinkjax.app.compile_cache`) skips the backend compile,
 but a new process still traces and lowers the whole method to find its cache entry: seconds per
-image size, paid again by every run and every worker. Here each measuring function is kept twice
-per function and argument shapes: exported with ``jax.export`` (a StableHLO module: its output
-shapes, and the call that runs under tracing) and as the compiled executable itself
-(``jax.experimental.serialize_executable``). A later process loads both, skipping tracing,
-lowering and the cache-key hash (about 0.1 s a function, all of it holding Python's lock while
-the other half loads). A deserialised executable needs the CPU's LAPACK kernels registered,
-which lowering does as a side effect; :func:`sinkjax.app.early.backend_ready` lowers a trivial
-exported call once per process for that (without it the first call crashed).
-``Exported.serialize`` needs the optional ``flatbuffers``: the Exported is pickled. The command
-line starts loading the executables while sinkjax is still being imported
-(:mod:`sinkjax.app.early`).
+image size, paid by every run and worker. Here each measuring function is kept per argument
+shapes, exported with ``jax.export`` (a StableHLO module: its output shapes, and the call that
+runs under tracing; pickled, as ``Exported.serialize`` needs the optional ``flatbuffers``) and
+as the compiled executable (``jax.experimental.serialize_executable``). A later process loads
+both, skipping tracing, lowering and the cache-key hash (about 0.1 s a function, all of it
+holding Python's lock while the other half loads). A deserialised executable needs the CPU's
+LAPACK kernels registered, which lowering does as a side effect;
+:func:`sinkjax.app.early.backend_ready` lowers a trivial exported call once per process for
+that (without it the first call crashed). The command line starts loading the executables while
+sinkjax is still being imported (:mod:`sinkjax.app.early`); an export or compile that is needed
+is announced to :func:`sinkjax.app.compile_cache.compile_notices` (a run's progress bar).
 
 An export's file is named by a hash of everything that could make it wrong for this process:
 the jax, jaxlib and equinox versions, sinkjax's version and the hash of its source files, the
 backend and its devices, the function, and the arguments' pytree structure, shapes and dtypes.
 A compiled file is named by what it compiles from (:func:`module_key`: the exported module
 without its source locations, its pytrees, jax, jaxlib, the devices and the compile options),
-so an edit of sinkjax that leaves the computation as it was finds it again. Each file carries a
-checksum of its contents; a file that is missing, corrupt, truncated or unreadable is made
-afresh (with a log line), so a bad cache can cost time but never change a number or fail a run:
-the executable loaded is the one the export compiles to, byte for byte. Only an executable
+so an edit of sinkjax that leaves the computation as it was finds it again. A file that is
+missing, corrupt (each carries a checksum), truncated or unreadable is made afresh (with a log
+line): a bad cache can cost time but never change a number or fail a run. Only an executable
 compiled afresh is kept (:func:`_compile_fresh`).
 """
 
@@ -45,6 +44,7 @@ from typing import Any
 
 from ..xla import jit
 from . import early
+from .compile_cache import LOAD_EVENT, compiling
 
 log = logging.getLogger("sinkjax")
 
@@ -54,8 +54,6 @@ MAGIC = b"sinkjax-executable 2\n"
 # while sinkjax is still being imported: sinkjax.app.early). Layout 1 (one pickle) is converted.
 COMPILED_MAGIC = b"sinkjax-compiled 2\n"
 _COMPILED_MAGIC_1 = b"sinkjax-compiled 1\n"
-# Reported as part of the run's compile time (sinkjax.app.compile_cache.CompileClock).
-LOAD_EVENT = "/sinkjax/exported_load_duration"
 
 
 @functools.cache
@@ -187,6 +185,12 @@ def _has_tracer(args: tuple[Any, ...]) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
 
 
+def frame_size(args: tuple[Any, ...]) -> tuple[int, int] | None:
+    """The frames' (width, height) where the first argument is a frame (the hint, the notice)."""
+    shape: tuple[int, ...] = tuple(getattr(args[0], "shape", ())) if args else ()
+    return (int(shape[1]), int(shape[0])) if len(shape) == 3 and shape[2] == 3 else None
+
+
 class Loaded:
     """One measuring function for one argument shape: the compiled executable, loaded from
     disk or compiled (and then written) at the first call or :meth:`load`, whichever comes
@@ -195,10 +199,7 @@ class Loaded:
 
     def __init__(self, cache: ExecutableCache, key: str, exported: Any, args: tuple[Any, ...]):
         # key: the compiled file's (module_key), shared by every export that compiles alike.
-        self._cache, self._key, self._args = cache, key, args
-        shape: tuple[int, ...] = tuple(getattr(args[0], "shape", ())) if args else ()
-        # The frames' (width, height) where the first argument is a frame, for the hint.
-        self._size = (int(shape[1]), int(shape[0])) if len(shape) == 3 and shape[2] == 3 else None
+        self._cache, self.key, self.args, self.size = cache, key, args, frame_size(args)
         self.jitted = jit(exported.call)
         self._compiled: Any = None
         self._lock = threading.Lock()
@@ -208,7 +209,7 @@ class Loaded:
         """The compiled executable (a ``jax.stages.Compiled``)."""
         with self._lock:
             if self._compiled is None:
-                self._compiled = self._cache.compiled(self._key, self.jitted, self._args)
+                self._compiled = self._cache.compiled(self)
             return self._compiled
 
     def __call__(self, *args: Any) -> Any:
@@ -216,7 +217,7 @@ class Loaded:
             return self.jitted(*args)
         if not self._noted:  # what the next run loads ahead, in the order first called
             self._noted = True
-            early.note(self._cache.directory, self._key, self._size)
+            early.note(self._cache.directory, self.key, self.size)
         return self.load()(*args)
 
 
@@ -238,8 +239,10 @@ class ExecutableCache:
         key = cache_key(name, args)
         ready = self._ready.get(key)
         if ready is None:
-            loaded = self._load(key, args)
-            exported, module = loaded if loaded is not None else self._export(key, fn, args)
+            if (loaded := self._load(key, args)) is None:
+                with compiling(frame_size(args)):  # tracing and lowering: seconds
+                    loaded = self._export(key, fn, args)
+            exported, module = loaded
             ready = self._ready[key] = Loaded(self, module, exported, args)
         return ready
 
@@ -249,20 +252,19 @@ class ExecutableCache:
     def compiled_path(self, key: str) -> Path:
         return compiled_file(self.directory, key)
 
-    def compiled(self, key: str, jitted: Any, args: tuple[Any, ...]) -> Any:
-        """The executable of ``jitted`` on ``args``: loaded from :meth:`compiled_path`, else
-        compiled (a hit in JAX's persistent cache where that has it) and, where compiled
-        afresh, written there."""
-        loaded = self._load_compiled(key)
-        if loaded is not None:
+    def compiled(self, fn: Loaded) -> Any:
+        """``fn``'s executable: loaded from :meth:`compiled_path`, else compiled (announced; a
+        hit in JAX's persistent cache where that has it) and, where compiled afresh, kept."""
+        if (loaded := self._load_compiled(fn.key)) is not None:
             return loaded
-        compiled, fresh = _compile_fresh(jitted, args)
+        with compiling(fn.size):
+            compiled, fresh = _compile_fresh(fn.jitted, fn.args)
         if not fresh:  # loaded by JAX from its cache (or memory): not kept
             return compiled
         try:
             from jax.experimental import serialize_executable
 
-            self._write_compiled(key, *serialize_executable.serialize(compiled))
+            self._write_compiled(fn.key, *serialize_executable.serialize(compiled))
         except Exception as e:  # the run goes on with the executable compiled here
             log.info("compiled function not written to %s (%s)", self.directory, e)
         return compiled

@@ -5,19 +5,20 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import threading
 import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 
 from ..result import FrameResult
 from ..rig import Rig
 from ..status import Status
-from .compile_cache import CompileClock
+from .compile_cache import CompileClock, compile_notices
 from .frames import ALL_FRAMES, Frame, FrameSelection, count_frames, frame_rate
 from .overlay import OverlayVideoWriter, OverlayWriter
 from .parallel import ParallelOptions, ParallelRun, plan_tasks
@@ -207,6 +208,7 @@ def estimate_to_csv(
                 out, "w" if fresh else "a", newline="", encoding="utf-8", errors="surrogateescape"
             ) as stream,
             clock,
+            compile_notices(_CompileNote(bar)),
             runner or contextlib.nullcontext(),
         ):
             writer = ResultsWriter(stream, header=fresh)
@@ -250,6 +252,31 @@ def estimate_to_csv(
     if summary_csv is not None:
         summary.summary_csv = write_summary(out, inputs, summary_csv, summary.features)
     return summary
+
+
+class _CompileNote:
+    """A :func:`~sinkjax.app.compile_cache.compile_notices` listener: while the soft method is
+    compiled for a new image size (tens of seconds the first time), the bar says so; the wait
+    is left out of its rate, ETA and elapsed time (which would otherwise read the compile as
+    the first frame's time), and the bar says how long the run's compiles took."""
+
+    PREPARING = "preparing the soft method for {}x{} frames (once per image size; later runs load"
+    PREPARED = "prepared in {:.0f} s, not counted in the rate"
+
+    def __init__(self, bar: Any) -> None:
+        self._bar, self._open, self._lock = bar, 0, threading.Lock()
+        self._began = self._spent = 0.0
+
+    def __call__(self, size: tuple[int, int] | None, started: bool) -> None:
+        with self._lock:
+            self._began = time.perf_counter() if started and not self._open else self._began
+            self._open += 1 if started else -1
+            if started and size is not None:
+                self._bar.set_postfix_str(self.PREPARING.format(*size) + " it in about a second)")
+            elif not started and not self._open:
+                self._spent += time.perf_counter() - self._began
+                self._bar.set_postfix_str(self.PREPARED.format(self._spent))
+                self._bar.unpause()
 
 
 def _parallel_rows(
