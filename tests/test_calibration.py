@@ -1241,3 +1241,59 @@ def test_failures_as_nan_is_undone_when_contexts_overlap() -> None:
     assert errors.EQX_ON_ERROR == "nan"  # B is still inside
     b.__exit__(None, None, None)
     assert errors.EQX_ON_ERROR == before
+
+
+def test_polish_side_by_side_measures_the_trail_one_after_another_would(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from sinkjax.calibration import rescore as R
+
+    # The step up and the step down are measured together; the step down is kept only where
+    # the step up does not lower the loss. A bumpy loss with both kinds of moves, and a budget
+    # that ends between the two.
+    def score(raw, bound=math.inf):
+        r = np.asarray(raw)
+        loss = np.sum(np.abs(r[:4] - np.array([0.7, -0.9, 0.2, -0.3]))) + np.sin(9 * r[0]) + 2
+        return types.SimpleNamespace(loss=jnp.asarray(float(loss)))
+
+    start = jnp.zeros(7)
+    trails = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("SINKJAX_FRAME_THREADS", threads)
+        for budget in (7, 40):
+            seen: list[float] = []
+            trail = R.polish(start, score(start), score, budget, seen.append)
+            assert seen == [float(o.loss) for _, o in trail] and len(trail) <= budget
+            trails[threads, budget] = [(np.asarray(r).tolist(), float(o.loss)) for r, o in trail]
+    assert trails["1", 7] == trails["2", 7] and trails["1", 40] == trails["2", 40]
+    best, at, moves = float(score(start).loss), np.zeros(4), []
+    for r, loss in trails["1", 40]:
+        if loss < best * (1 - R.TIE):
+            moves.append(float(np.sum(np.asarray(r[:4]) - at)))
+            best, at = loss, np.asarray(r[:4])
+    assert min(moves) < 0 < max(moves)  # steps up and steps down were taken
+
+
+def test_in_order_passes_on_each_channel_after_the_one_before() -> None:
+    import threading
+    import time
+
+    from sinkjax.calibration.rescore import InOrder
+
+    got: list[tuple[float, bool]] = []
+    relay = InOrder(lambda v, first: got.append((v, first)), 3)
+
+    def feed(k: int, delay: float) -> None:
+        for j in range(4):
+            time.sleep(delay)
+            relay.channel(k)(10 * k + j)
+        relay.close(k)
+
+    # Channel 2 ends first and channel 0 last: they still come out 0, 1, 2.
+    threads = [threading.Thread(target=feed, args=(k, 0.02 * (3 - k))) for k in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert [v for v, _ in got] == [10 * k + j for k in range(3) for j in range(4)]
+    assert [first for _, first in got] == [j == 0 for _ in range(3) for j in range(4)]

@@ -178,3 +178,27 @@ def test_side_by_side_keeps_the_order_and_runs_the_first_row_alone(
     monkeypatch.setenv("SINKJAX_FRAME_THREADS", "two")
     with pytest.raises(ValueError, match="SINKJAX_FRAME_THREADS must be a whole number"):
         xla.side_by_side(slow, range(2), range(2))
+
+
+def test_side_by_side_of_a_compiled_function_runs_every_row_on_the_pool(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import threading
+    import time
+
+    monkeypatch.setenv("SINKJAX_FRAME_THREADS", "2")
+    seen: list[str] = []
+    started = threading.Barrier(2, timeout=5)  # both rows must be running at once
+
+    def together(i: int) -> int:
+        seen.append(threading.current_thread().name)
+        started.wait()
+        time.sleep(0.01 * (2 - i))
+        return 3 * i
+
+    assert xla.side_by_side(together, range(2), compiled=True) == [0, 3]
+    assert set(seen) <= {f"{xla._POOL_NAME}_{k}" for k in range(2)} and len(seen) == 2
+    # Without ``compiled`` the first row runs alone in the caller: two rows never meet.
+    started.reset()
+    with pytest.raises(threading.BrokenBarrierError):
+        xla.side_by_side(lambda i: started.wait(timeout=0.2), range(2))

@@ -175,15 +175,17 @@ os.register_at_fork(after_in_child=_forget_pool)
 
 
 def side_by_side(
-    fun: Callable[..., Any], *columns: Sequence[Any], alone: bool = False
+    fun: Callable[..., Any], *columns: Sequence[Any], alone: bool = False, compiled: bool = False
 ) -> list[Any]:
     """``[fun(*row) for row in zip(*columns)]`` (frames, or calibration's candidate points),
     each result computed (blocked on), the rows after the first on :func:`frame_threads`
     threads. One compiled call leaves a CPU's second core mostly idle (most of XLA's fused
     loops run on one thread), so two frames side by side take 0.75-0.85x the time of one after
     the other (640x480 on 2 cores). The first row runs alone, so that a function that still has
-    to compile compiles once. The same numbers as one after another: each call is the same
-    compiled function on its own inputs. Called from the pool's own threads, or with
+    to compile compiles once; with ``compiled`` (it has run on these shapes before) every row
+    runs on the pool, so that two rows run together (2026-12-08: calibration's grid points in
+    pairs had run one after another). The same numbers as one after another: each call is the
+    same compiled function on its own inputs. Called from the pool's own threads, or with
     ``alone`` (the other core is busy, e.g. loading the next function): one after another."""
     import concurrent.futures
 
@@ -205,5 +207,7 @@ def side_by_side(
         if _frame_pool is None or _frame_pool[0] != threads:
             _frame_pool = (threads, concurrent.futures.ThreadPoolExecutor(threads, _POOL_NAME))
         pool = _frame_pool[1]
+    if compiled:
+        return list(pool.map(run, rows))
     first = run(rows[0])
     return [first, *pool.map(run, rows[1:])]

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import logging
 import math
 import time
 from collections.abc import Callable
@@ -36,6 +35,7 @@ from jaxtyping import Array, PRNGKeyArray
 from ..rig import Rig, SegmentationParams
 from ..soft.batch import SoftRecording
 from ..soft.rim import RecordingRim
+from ..xla import side_by_side
 from .augment import DEFAULT_CONFIG, AugmentConfig
 from .checks import CalibrationResult, Errors, run_checks
 from .compiled import compile_in_background, complete, loss_and_grad, loss_value
@@ -45,6 +45,7 @@ from .rescore import (
     N_RESCORED,
     POLISH_MEASUREMENTS,
     FrameCounter,
+    InOrder,
     PolishProgress,
     _as_estimate_measures,
     _distinct_lowest,
@@ -170,10 +171,11 @@ def calibrate(
     descent converged, which frames disagree with the rest, and the leave-one-out error.
     ``losses`` is the final descent's loss per step (from its starting point).
     Progress: ``progress`` draws bars on the terminal (the grid's frames measured, Adam's steps,
-    the polish's measurements); ``callback(step, loss)`` is called at each Adam step, and
-    ``on_stage(stage, done, total)`` as the grid ("grid": frames measured, of at most
-    ``total``; points that cannot be among the lowest stop early, and the last call has
-    ``done == total``) and the polish ("polish": measurements, of at most ``total``) go on.
+    the polish's measurements); ``callback(step, loss)`` at each Adam step (in order, maybe
+    from a worker thread: descents run side by side), ``on_stage(stage, done, total)`` as the
+    grid ("grid": frames measured, of at most ``total``; points that cannot be among the lowest
+    stop early, and the last call has ``done == total``) and the polish ("polish":
+    measurements, of at most ``total``) go on.
     ``rim``: "recording" (default) takes the labelled frames as frames of one recording, as
     ``sinkjax estimate`` measures them: their rim circle is found once, from
     ``frames.rim_source`` (the recording's first frames where ``frames.rim_images`` holds them,
@@ -288,24 +290,43 @@ def calibrate(
         counter[0] += 1
 
     aug = noisy if augment else None
-    runs = []
-    for i in chosen:
-        # Grid points (and the start) were scored without the gradient: the descent takes it.
-        compiling.join()
-        start = (points[i][0], call(points[i][0]) if steps else points[i][1])
-        d = _descend(call, *start, probe, learning_rate, patience, aug, on_step)
+    compiling.join()
+    # Grid points (and the start) were scored without the gradient: the descents take it, the
+    # first alone (it may still have to be traced); then the probes run side by side, and
+    # report their steps in order (one probe's, then the next's).
+    begin = [points[i] for i in chosen]
+    if steps:
+        raws0 = [r for r, _ in begin]
+        begin = list(zip(raws0, side_by_side(call, raws0), strict=True))
+
+    def stepped(loss: float, first: bool) -> None:
+        on_step(loss)
+        bar.update(0 if first else 1)  # the first loss is the start's, not a step
+
+    relay = InOrder(stepped, len(chosen))
+
+    def probe_from(k: int, start: tuple[Array, LossAndGrad]) -> _Descent:
+        try:
+            return _descend(call, *start, probe, learning_rate, patience, aug, relay.channel(k))
+        finally:
+            relay.close(k)
+
+    runs = side_by_side(probe_from, range(len(chosen)), begin, compiled=True)
+    for d in runs:
         points += d.trail
-        runs.append(d)
-        bar.update(len(d.losses) - 1)
     last = min(runs, key=lambda d: float(d.out.loss))
     if len(chosen) > 1 and steps - probe * len(chosen) > 0:
         rest = steps - probe * len(chosen)
-        last = _descend(call, last.raw, last.out, rest, learning_rate, patience, aug, on_step)
+        relay = InOrder(stepped, 1)
+        last = _descend(
+            call, last.raw, last.out, rest, learning_rate, patience, aug, relay.channel(0)
+        )
         points += last.trail
-        bar.update(len(last.losses) - 1)
     bar.close()
     i_best = min(range(len(points)), key=lambda i: float(points[i][1].loss))
-    found = functools.cache(lambda key: _own_rim(frames, _with(rig, jnp.asarray(key))))
+    found = functools.cache(
+        lambda key: labelled_rim(frames, _with(rig, jnp.asarray(key)), "recording")
+    )
     rim_of = lambda r: found(tuple(np.asarray(r).tolist()))  # each point's own rim, found once
     if rim == "recording":
         i_best, measured = _as_estimate_measures(
@@ -362,18 +383,6 @@ def calibrate(
         ),
         rim=(rim_of(raw_best) if rim == "recording" else held).describe(),
     )
-
-
-def _own_rim(frames: LabelledFrames, rig: Rig) -> RecordingRim:
-    """The labelled frames' rim as ``rig`` finds it (in ``frames.rim_source``), without logging a
-    rig that finds none."""
-    logger = logging.getLogger("sinkjax")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        return labelled_rim(frames, rig, "recording")
-    finally:
-        logger.setLevel(level)
 
 
 def labelled_rim(frames: LabelledFrames, rig: Rig, rim: str | RecordingRim) -> RecordingRim:

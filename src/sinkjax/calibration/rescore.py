@@ -91,6 +91,42 @@ class PolishProgress:
             self._on_stage("polish", self._done, self._total)
 
 
+class InOrder:
+    """Reports from ``n`` channels fed side by side on threads, passed on to ``report(value,
+    first)`` one channel after another (channel 0's, then 1's, ...; a later channel's are
+    held until the earlier ones are closed): the descents run side by side, and report their
+    steps as one after another would. ``first``: the channel's first value."""
+
+    def __init__(self, report: Callable[[float, bool], None], n: int) -> None:
+        self._report, self._n, self._lock = report, n, threading.Lock()
+        self._held: list[list[float]] = [[] for _ in range(n)]
+        self._seen, self._closed, self._open = [0] * n, [False] * n, 0
+
+    def channel(self, k: int) -> Callable[[float], None]:
+        return lambda value: self._feed(k, value)
+
+    def _feed(self, k: int, value: float) -> None:
+        with self._lock:
+            if k == self._open:
+                self._pass(k, value)
+            else:
+                self._held[k].append(value)
+
+    def _pass(self, k: int, value: float) -> None:
+        self._report(value, not self._seen[k])
+        self._seen[k] += 1
+
+    def close(self, k: int) -> None:
+        with self._lock:
+            self._closed[k] = True
+            while self._open < self._n and self._closed[self._open]:
+                self._open += 1
+                if self._open < self._n:
+                    for value in self._held[self._open]:
+                        self._pass(self._open, value)
+                    self._held[self._open].clear()
+
+
 def _measured(out: LossAndGrad) -> int:
     return int(np.sum(np.asarray(out.frames.status) >= 0))
 
@@ -109,18 +145,19 @@ def score_pruned(
     completed before them set: the lowest ``exact`` value. A point above it cannot be among
     them, whatever its other frames measure, and stops there (a lower bound above the bound
     stands for its loss). ``exact`` 0: every point on every frame. Points are measured side by
-    side on a CPU's cores (:func:`~sinkjax.xla.side_by_side`); which are completed does not
-    depend on how many cores there are."""
+    side on a CPU's cores (:func:`~sinkjax.xla.side_by_side`; ``value`` has run before, so
+    each pair runs together); which are completed does not depend on how many cores there are."""
     if not exact:
-        return list(zip(raws, side_by_side(lambda r: value(r, math.inf, None), raws), strict=True))
-    firsts = side_by_side(lambda r: value(r, -math.inf, None), raws)
+        outs = side_by_side(lambda r: value(r, math.inf, None), raws, compiled=True)
+        return list(zip(raws, outs, strict=True))
+    firsts = side_by_side(lambda r: value(r, -math.inf, None), raws, compiled=True)
     scored: dict[int, LossAndGrad] = {}
     order = sorted(range(len(raws)), key=lambda j: float(firsts[j].loss))
     for pair in (order[k : k + SIDE_BY_SIDE] for k in range(0, len(order), SIDE_BY_SIDE)):
         done = points + [(raws[k], o) for k, o in scored.items()]
         lowest = _distinct_lowest(done, range(len(done)), exact)
         bound = float(done[lowest[-1]][1].loss) if len(lowest) == exact else math.inf
-        outs = side_by_side(lambda j, b=bound: value(raws[j], b, firsts[j]), pair)
+        outs = side_by_side(lambda j, b=bound: value(raws[j], b, firsts[j]), pair, compiled=True)
         scored.update(zip(pair, outs, strict=True))
     return [(r, scored[j]) for j, r in enumerate(raws)]
 
@@ -203,12 +240,16 @@ def polish(
     while step >= POLISH_MIN_STEP and len(trail) < measurements:
         moved = False
         for i in POLISH_COORDS:
-            for sign in (1.0, -1.0):
-                if len(trail) >= measurements:
-                    break
-                cand = best_raw.at[i].add(sign * step)
-                # Bound: the best so far, so that a point stopped early is never the lowest.
-                o = score(cand, best)
+            if len(trail) >= measurements:
+                break
+            up_down = [best_raw.at[i].add(sign * step) for sign in (1.0, -1.0)]
+            # Both side by side (as far as measurements are left); the step down counts only
+            # where the step up does not lower the loss, as one after another, so the trail is
+            # the same. Bound: the best so far, so that a point stopped early is never lowest.
+            outs = side_by_side(
+                lambda c, b=best: score(c, b), up_down[: measurements - len(trail)], compiled=True
+            )
+            for cand, o in zip(up_down, outs, strict=False):
                 trail.append((cand, o))
                 if on_step is not None:
                     on_step(float(o.loss))
