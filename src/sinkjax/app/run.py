@@ -260,7 +260,7 @@ class _CompileNote:
     is left out of its rate, ETA and elapsed time (which would otherwise read the compile as
     the first frame's time), and the bar says how long the run's compiles took."""
 
-    PREPARING = "preparing the soft method for {}x{} frames (once per image size; later runs load"
+    PREPARING = "preparing the soft method for {}x{} frames (once per image size, then cached)"
     PREPARED = "prepared in {:.0f} s, not counted in the rate"
 
     def __init__(self, bar: Any) -> None:
@@ -272,7 +272,7 @@ class _CompileNote:
             self._began = time.perf_counter() if started and not self._open else self._began
             self._open += 1 if started else -1
             if started and size is not None:
-                self._bar.set_postfix_str(self.PREPARING.format(*size) + " it in about a second)")
+                self._bar.set_postfix_str(self.PREPARING.format(*size))
             elif not started and not self._open:
                 self._spent += time.perf_counter() - self._began
                 self._bar.set_postfix_str(self.PREPARED.format(self._spent))
