@@ -283,12 +283,6 @@ def calibrate(
     probe = steps if len(chosen) == 1 else steps // (2 * len(chosen))
     bar = tqdm(total=steps, desc="calibrate", unit="step", disable=not progress)
     counter = [0]
-
-    def on_step(loss: float) -> None:
-        if callback is not None:
-            callback(counter[0], loss)
-        counter[0] += 1
-
     aug = noisy if augment else None
     compiling.join()
     # Grid points (and the start) were scored without the gradient: the descents take it, the
@@ -300,7 +294,9 @@ def calibrate(
         begin = list(zip(raws0, side_by_side(call, raws0), strict=True))
 
     def stepped(loss: float, first: bool) -> None:
-        on_step(loss)
+        if callback is not None:
+            callback(counter[0], loss)
+        counter[0] += 1
         bar.update(0 if first else 1)  # the first loss is the start's, not a step
 
     relay = InOrder(stepped, len(chosen))
